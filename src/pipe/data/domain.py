@@ -1,0 +1,50 @@
+"""A domain: the train / val / test split of parts (paper, Table I), checked against a dataset."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pipe.errors import PipeError
+
+SPLITS = ("train", "val", "test")
+
+
+@dataclass(frozen=True)
+class Domain:
+    name: str
+    train: tuple[str, ...]
+    val: tuple[str, ...]
+    test: tuple[str, ...]
+
+    @property
+    def parts(self) -> tuple[str, ...]:
+        return self.train + self.val + self.test
+
+
+def domain_from_config(cfg: Mapping[str, Any]) -> Domain:
+    """Build a domain from its config group; test parts must not be in train or val."""
+    name = str(cfg.get("name", "?"))
+    splits = {}
+    for split in SPLITS:
+        parts = cfg.get(split)
+        if parts is None or isinstance(parts, str) or not all(isinstance(p, str) for p in parts):
+            raise PipeError(f"domain {name!r}: '{split}' must be a list of part names, got {parts!r}")
+        splits[split] = tuple(parts)
+    if not splits["train"]:
+        raise PipeError(f"domain {name!r} has no training parts")
+    for a, b in (("train", "val"), ("train", "test"), ("val", "test")):
+        shared = sorted(set(splits[a]) & set(splits[b]))
+        if shared:
+            raise PipeError(f"domain {name!r}: parts {shared} are in both '{a}' and '{b}'")
+    return Domain(name, **splits)
+
+
+def require_parts(domain: Domain, available: Iterable[str], dataset_root: str | Path) -> None:
+    """Fail clearly when the domain names parts the dataset does not have."""
+    missing = sorted(set(domain.parts) - set(available))
+    if missing:
+        raise PipeError(f"domain {domain.name!r} needs part(s) {missing} that the dataset does not have",
+                        dataset_root)

@@ -1,0 +1,155 @@
+"""Write the synthetic dataset: meshes, trials with sensor noise, and per-trial ground truth."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipe.data.spec import Columns, DatasetSpec
+from pipe.errors import PipeError
+from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
+from pipe.synthetic.contact import TrialConditions, static_curves, target_depth
+from pipe.synthetic.dynamics import INTERNAL_RATE_HZ, ContactTables, command_profile, simulate, static_tcp_depth
+from pipe.synthetic.meshes import part_mesh
+
+SAMPLE_RATE_HZ = 500
+TRIALS_PER_PART = 10
+REST_S, HOLD_S = 0.2, 1.0
+NOMINAL_SPEED = {"plug": 4.0, "pin": 8.0}   # mm/s
+FORCE_NOISE = 0.04                           # N, sensor noise (1 sigma)
+POSITION_NOISE = 0.002                       # mm, encoder noise (1 sigma)
+GRID_STEP = 0.005                            # mm, depth grid of the contact tables
+TRUTH_STEP = 0.02                            # mm, depth step of the stored static curves
+COLUMNS = Columns(time="t", position="p_z", force="F_z", force_clean="F_z_clean")
+
+
+@dataclass(frozen=True)
+class SimulatedTrial:
+    part: str
+    conditions: TrialConditions
+    time: np.ndarray
+    depth: np.ndarray        # measured TCP depth, mm
+    force: np.ndarray        # measured force, N (noise and bias)
+    force_clean: np.ndarray  # sensor reading without noise and bias, N
+    static_depth: np.ndarray  # true static curve: TCP depth, mm
+    static_force: np.ndarray  # true static curve: force, N
+
+
+def part_rng(seed: int, name: str) -> np.random.Generator:
+    """Each part has its own stream, so a part's trials do not depend on which other parts are generated."""
+    return np.random.default_rng([seed, zlib.crc32(name.encode())])
+
+
+def draw_conditions(part: Plug | Pin, rng: np.random.Generator) -> TrialConditions:
+    is_plug = isinstance(part, Plug)
+    return TrialConditions(
+        speed=NOMINAL_SPEED["plug" if is_plug else "pin"] * rng.uniform(0.7, 1.3),
+        misalignment=min(abs(rng.normal(0.0, 0.15)), 0.4),
+        gap=rng.uniform(1.0, 2.0),
+        overtravel=rng.uniform(0.1, 0.3) if is_plug else (rng.uniform(0.3, 0.7) if part.taper else 0.0),
+        friction_scale=rng.uniform(0.9, 1.1),
+        contact_offsets=rng.normal(0.0, 0.04, part.contacts),
+        sensor_bias=rng.uniform(-1.0, 1.0),
+    )
+
+
+def simulate_parts(names: list[str], seed: int, trials: int = TRIALS_PER_PART) -> list[SimulatedTrial]:
+    """Simulate `trials` insertions of each named part, all integrated together."""
+    rngs = {name: part_rng(seed, name) for name in names}
+    jobs = [(name, draw_conditions(CATALOGUE[name], rngs[name])) for name in names for _ in range(trials)]
+    commands = [command_profile(c.gap, target_depth(CATALOGUE[n]) + c.overtravel, c.speed, REST_S, HOLD_S)
+                for n, c in jobs]
+    n_steps = max(len(cmd) for cmd in commands)
+    command = np.stack([np.pad(cmd, (0, n_steps - len(cmd)), mode="edge") for cmd in commands])
+    grid = np.arange(0.0, command.max() + 1.0, GRID_STEP)
+    curves = [static_curves(CATALOGUE[n], c, grid) for n, c in jobs]
+    tables = ContactTables(GRID_STEP, np.stack([e for e, _ in curves]), np.stack([f for _, f in curves]))
+    decimation = INTERNAL_RATE_HZ // SAMPLE_RATE_HZ
+    depth, force = simulate(command, tables, decimation)
+
+    out = []
+    truth_x = np.arange(0.0, grid[-1], TRUTH_STEP)
+    for i, ((name, cond), cmd) in enumerate(zip(jobs, commands)):
+        n = (len(cmd) - 1) // decimation + 1
+        rng = rngs[name]
+        clean = force[i, :n]
+        measured_depth = depth[i, :n] + rng.normal(0.0, POSITION_NOISE, n)
+        measured_force = clean + cond.sensor_bias + rng.normal(0.0, FORCE_NOISE, n)
+        elastic, friction = static_curves(CATALOGUE[name], cond, truth_x)
+        static_force = elastic + friction
+        static_depth = static_tcp_depth(truth_x, static_force)
+        keep = static_depth <= depth[i, :n].max()
+        out.append(SimulatedTrial(name, cond, np.arange(n) / SAMPLE_RATE_HZ, measured_depth, measured_force,
+                                  clean, static_depth[keep], static_force[keep]))
+    return out
+
+
+def part_metadata(part: Plug | Pin) -> dict:
+    if isinstance(part, Plug):
+        return {"family": part.family, "contacts": part.contacts, "shell_width_mm": part.width,
+                "shell_height_mm": part.height, "mate_length_mm": part.mate_length}
+    meta = {"family": part.family, "diameter_mm": part.diameter, "length_mm": part.length,
+            "insert_depth_mm": part.insert_depth}
+    if part.taper:
+        meta["taper"] = "1:50"
+    return meta
+
+
+def _write_csv(path: Path, header: list[str], columns: list[np.ndarray], fmt: list[str]) -> None:
+    np.savetxt(path, np.column_stack(columns), fmt=fmt, delimiter=",", header=",".join(header), comments="")
+
+
+def write_dataset(out: Path, names: list[str], seed: int, trials: list[SimulatedTrial]) -> None:
+    spec = DatasetSpec(root=out, name="pipe-synthetic", columns=COLUMNS, sample_rate_hz=SAMPLE_RATE_HZ,
+                       parts={n: part_metadata(CATALOGUE[n]) for n in names})
+    text = f"# Synthetic insertions generated by `pipe data generate --seed {seed}`; see docs/synthetic.md.\n"
+    (out / "dataset.yaml").write_text(text + spec.to_yaml())
+    counters: dict[str, int] = {}
+    for name in names:
+        part_dir = out / "parts" / name
+        (part_dir / "trials").mkdir(parents=True)
+        (part_dir / "truth").mkdir()
+        part_mesh(CATALOGUE[name]).export(part_dir / "mesh.stl")
+    for trial in trials:
+        index = counters[trial.part] = counters.get(trial.part, -1) + 1
+        part_dir = out / "parts" / trial.part
+        stem = f"trial_{index:02d}.csv"
+        _write_csv(part_dir / "trials" / stem, ["t", "p_z", "F_z", "F_z_clean"],
+                   [trial.time, trial.depth, trial.force, trial.force_clean], ["%.4f", "%.5f", "%.5f", "%.5f"])
+        _write_csv(part_dir / "truth" / stem, ["p_z", "F_static"], [trial.static_depth, trial.static_force],
+                   ["%.5f", "%.5f"])
+
+
+def generate_dataset(out: str | Path, seed: int = 0, parts: list[str] | None = None) -> Path:
+    """Generate the synthetic dataset into `out`, replacing an earlier generated dataset there atomically.
+
+    A folder that exists, is not empty and holds no dataset.yaml is refused rather than overwritten.
+    """
+    out = Path(out)
+    names = list(CATALOGUE) if parts is None else list(dict.fromkeys(parts))
+    unknown = [n for n in names if n not in CATALOGUE]
+    if unknown:
+        raise PipeError(f"unknown part(s) {unknown}; the synthetic parts are: {', '.join(CATALOGUE)}")
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "dataset.yaml").is_file())):
+        raise PipeError("exists and is not a generated dataset; choose an empty or new folder", out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    trials = simulate_parts(names, seed)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        write_dataset(staging, names, seed, trials)
+        if out.exists():
+            old = out.with_name(f".{out.name}.old")
+            shutil.rmtree(old, ignore_errors=True)
+            out.rename(old)
+            staging.rename(out)
+            shutil.rmtree(old)
+        else:
+            staging.rename(out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return out
