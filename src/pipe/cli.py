@@ -12,13 +12,17 @@ from rich.table import Table
 
 from pipe.errors import PipeError
 
-err_console = Console(stderr=True, highlight=False)
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
 
 
+def say(message: str, kind: str) -> None:
+    """Print a problem as one wrapped paragraph on stderr."""
+    print(textwrap.fill(f"{kind}: {message}", width=100, break_long_words=False), file=sys.stderr)
+
+
 def fail(message: str) -> int:
-    """Print a user error as one wrapped paragraph, no traceback."""
-    err_console.print(textwrap.fill(f"error: {message}", width=100), markup=False)
+    """Report a user error without a traceback; the exit status to return."""
+    say(message, "error")
     return 2
 
 
@@ -32,20 +36,22 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from pipe.data.check import SUMMARY_HEADER, check_dataset, summary_rows
+    from pipe.data.check import SUMMARY_HEADER, check_dataset, summary_rows, write_summary_json
 
     report = check_dataset(args.dir)
+    if args.json:
+        write_summary_json(report, args.json)
     if report.parts:
         table = Table(*SUMMARY_HEADER, title=f"dataset {report.root}")
         for row in summary_rows(report):
             table.add_row(*row)
         console.print(table)
     for warning in report.warnings:
-        err_console.print(textwrap.fill(f"warning: {warning}", width=100), markup=False)
+        say(str(warning), "warning")
     if not report.ok:
         for problem in report.problems:
-            fail(str(problem))
-        err_console.print(f"{len(report.problems)} problem(s) found in {report.root}", markup=False)
+            say(str(problem), "error")
+        print(f"{len(report.problems)} problem(s) found in {report.root}", file=sys.stderr)
         return 1
     console.print(f"ok: {len(report.parts)} parts, {sum(p.trials for p in report.parts)} trials")
     return 0
@@ -84,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     check = verbs.add_parser("check", help="validate a dataset folder and summarise each part")
     check.add_argument("dir", type=Path)
+    check.add_argument("--json", type=Path, help="also write the summary as JSON (for `dvc metrics show`)")
     check.set_defaults(run=cmd_check)
 
     cloud = verbs.add_parser("pointcloud", help="sample a mesh into the centred point cloud the encoder sees")

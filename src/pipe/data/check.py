@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,9 +55,9 @@ def _check_part(part_dir: Path, spec, report: CheckReport) -> None:
         except DatasetError as err:
             report.problems.append(err)
             continue
-        if trial.depth.max() <= 0:
+        if trial.depth[abs(trial.depth).argmax()] <= 0:
             report.problems.append(DatasetError(
-                "depth never becomes positive: pipe expects p_z positive into the part; if your robot's z "
+                "depth goes negative, away from the part: pipe expects p_z positive into the part; if your robot's z "
                 "decreases while inserting, set 'sign: {position: -1}' in dataset.yaml", path))
         elif -trial.force.min() > 2 * max(trial.force.max(), 1e-9):
             report.warnings.append(DatasetError(
@@ -96,13 +97,16 @@ def check_dataset(root: str | Path) -> CheckReport:
 
 def summary_rows(report: CheckReport) -> list[list[str]]:
     """One row of printable cells per valid part."""
+    def span(pair: tuple[float, float]) -> str:
+        return f"{pair[0] + 0.0:.2f}..{pair[1] + 0.0:.2f}"  # + 0.0 turns -0.0 into 0.0
+
     rows = []
     for p in report.parts:
         rows.append([
             p.name, str(p.trials), str(p.samples),
             f"{p.duration_s[0]:.2f}-{p.duration_s[1]:.2f}",
-            f"{p.depth_mm[0]:.2f}..{p.depth_mm[1]:.2f}",
-            f"{p.force_n[0]:.2f}..{p.force_n[1]:.2f}",
+            span(p.depth_mm),
+            span(p.force_n),
             " x ".join(f"{e:.1f}" for e in p.extents_mm),
             "yes" if p.watertight else "no",
         ])
@@ -111,3 +115,18 @@ def summary_rows(report: CheckReport) -> list[list[str]]:
 
 SUMMARY_HEADER = ["part", "trials", "samples", "duration [s]", "depth [mm]", "force [N]", "extents [mm]", "watertight"]
 
+
+
+def write_summary_json(report: CheckReport, path: str | Path) -> None:
+    """The report's totals as JSON (flat, so that `dvc metrics show` stays readable)."""
+    doc = {
+        "ok": report.ok,
+        "problems": len(report.problems),
+        "parts": len(report.parts),
+        "trials": sum(p.trials for p in report.parts),
+        "samples": sum(p.samples for p in report.parts),
+        "watertight_meshes": sum(p.watertight for p in report.parts),
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=2) + "\n")

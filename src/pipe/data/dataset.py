@@ -91,9 +91,9 @@ def read_numeric_csv(path: Path, columns: tuple[str, ...]) -> dict[str, np.ndarr
 
 
 def zero_start(time: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:
-    """Subtract the mean over the first `window_s` seconds (at least the first sample)."""
-    head = values[time - time[0] <= window_s]
-    return values - head.mean()
+    """Subtract the mean over the samples of the first `window_s` seconds (at least the first sample)."""
+    count = max(1, int(np.searchsorted(time - time[0], window_s, side="left")))
+    return values - values[:count].mean()
 
 
 def load_trial(path: str | Path, spec: DatasetSpec, zero_window_s: float = ZERO_WINDOW_S) -> Trial:

@@ -28,7 +28,7 @@ DETENT_WIDTH = 0.25           # mm, half-width of a detent's ridge
 STOP_STIFFNESS = 400.0        # N/mm, housing hitting the mechanical stop
 BORE_PRESSURE = 0.01          # N/mm^2, line pressure of a pin in its reamed bore (fit + roughness)
 PIN_FRICTION = 0.15
-TAPER_SEAT_STIFFNESS = 1.0    # N/mm^3, normal pressure per mm of diametral interference of a taper pin
+TAPER_SEAT_STIFFNESS = 0.6    # N/mm^3, normal pressure per mm of diametral interference of a taper pin
 
 
 @dataclass(frozen=True)

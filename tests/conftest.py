@@ -1,0 +1,35 @@
+"""Shared fixtures: a small generated dataset and the real meshes beside the repository."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipe.synthetic import generate_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL_MESHES = Path(os.environ.get("PIPE_REAL_MESHES", ROOT.parent / "shared" / "real-meshes"))
+
+
+@pytest.fixture(scope="session")
+def small_dataset(tmp_path_factory) -> Path:
+    """Two parts of the synthetic dataset (a plug and a pin), generated once per test session."""
+    return generate_dataset(tmp_path_factory.mktemp("data") / "small", seed=0, parts=["dsub9", "taper8"])
+
+
+@pytest.fixture
+def dataset_copy(small_dataset, tmp_path) -> Path:
+    """A private copy of the small dataset that a test may break."""
+    return Path(shutil.copytree(small_dataset, tmp_path / "ds"))
+
+
+@pytest.fixture(scope="session")
+def real_meshes() -> list[Path]:
+    if not REAL_MESHES.is_dir():
+        if os.environ.get("CI"):
+            pytest.fail(f"the real meshes are missing at {REAL_MESHES} (set PIPE_REAL_MESHES)")
+        pytest.skip(f"real meshes not found at {REAL_MESHES}; set PIPE_REAL_MESHES to run these tests")
+    return sorted(p for p in REAL_MESHES.iterdir() if p.suffix.lower() in (".stl", ".obj"))

@@ -1,0 +1,91 @@
+"""The `pipe` command, the Hydra configs (paper's splits, overrides) and train.py's data preparation."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from pipe.cli import main
+from pipe.data.domain import domain_from_config
+from pipe.errors import PipeError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+PAPER_SPLITS = {
+    "dsub": (["dsub9", "dsub15", "dsub25", "dsub37", "dsub44"], ["vga"], ["dsub26"]),
+    "pins": (["taper6", "taper10", "taper14", "dowel5", "dowel12"], ["taper12", "dowel8"], ["taper8", "dowel6"]),
+    "conn": (["dsub9", "dsub15", "dsub25", "dsub37", "dsub44", "dvi", "hdmimini", "hdmi", "rj45", "usba", "usbc",
+              "usbmicro"], ["vga", "hdmimicro", "usbmini"], ["displayport", "dsub26", "usbb"]),
+}
+
+
+def compose_config(overrides: list[str]):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=overrides)
+
+
+@pytest.mark.parametrize("name", list(PAPER_SPLITS))
+def test_domains_are_the_papers_table(name, monkeypatch):
+    monkeypatch.setenv("PROJECT_ROOT", str(ROOT))
+    cfg = compose_config([f"domain={name}"])
+    domain = domain_from_config(cfg.domain)
+    assert (list(domain.train), list(domain.val), list(domain.test)) == PAPER_SPLITS[name]
+
+
+def test_default_config_and_command_line_overrides(monkeypatch):
+    monkeypatch.setenv("PROJECT_ROOT", str(ROOT))
+    cfg = compose_config(["domain.test=[usbb]", "data.points=2048"])
+    assert cfg.domain.name == "conn" and list(cfg.domain.test) == ["usbb"]
+    assert cfg.data.points == 2048
+    assert cfg.data.dir == f"{ROOT}/data/synthetic"   # resolved from the project root, not the cwd
+
+
+def test_a_test_part_may_not_leak_into_training():
+    with pytest.raises(PipeError, match=r"parts \['dsub26'\] are in both 'train' and 'test'"):
+        domain_from_config({"name": "x", "train": ["dsub9", "dsub26"], "val": [], "test": ["dsub26"]})
+
+
+def test_cli_generate_then_check(tmp_path, capsys):
+    out = tmp_path / "ds"
+    assert main(["data", "generate", str(out), "--seed", "2", "--parts", "usbmicro,dowel8"]) == 0
+    assert main(["data", "check", str(out), "--json", str(tmp_path / "summary.json")]) == 0
+    printed = capsys.readouterr().out
+    assert "usbmicro" in printed and "dowel8" in printed and "ok: 2 parts, 20 trials" in printed
+    assert '"trials": 20' in (tmp_path / "summary.json").read_text()
+
+
+def test_cli_user_errors_exit_nonzero_without_traceback(tmp_path, capsys):
+    assert main(["data", "generate", str(tmp_path / "x"), "--parts", "dsub99"]) == 2
+    assert main(["data", "pointcloud", str(tmp_path / "missing.stl")]) == 2
+    err = capsys.readouterr().err
+    assert "unknown part(s) ['dsub99']" in err and "missing.stl: mesh file does not exist" in " ".join(err.split())
+    assert "Traceback" not in err
+
+
+def run_train(*overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "train.py"), *overrides], capture_output=True, text=True,
+                          cwd="/", timeout=300)
+
+
+def test_train_prepares_the_domain_from_any_directory(tmp_path):
+    data = tmp_path / "pins"
+    main(["data", "generate", str(data), "--parts", ",".join(sum(PAPER_SPLITS["pins"], []))])
+    result = run_train("domain=pins", f"data.dir={data}", f"hydra.run.dir={tmp_path / 'run'}")
+    assert result.returncode == 0, result.stderr
+    assert "taper8" in result.stdout and "data ready" in result.stdout
+
+
+def test_train_names_missing_parts_and_exits_nonzero(small_dataset, tmp_path):
+    result = run_train("domain=pins", f"data.dir={small_dataset}", f"hydra.run.dir={tmp_path / 'run'}")
+    assert result.returncode == 2
+    assert "needs part(s)" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_train_reports_unknown_config_option(tmp_path):
+    result = run_train("domain=nope", f"hydra.run.dir={tmp_path / 'run'}")
+    assert result.returncode != 0
+    assert "nope" in result.stderr and "Traceback" not in result.stderr
