@@ -71,17 +71,19 @@ def _corrupt_csv(text):
 
 HEADER = "t,p_z,F_z,F_z_clean\n"
 BAD_INPUTS = {
-    "missing dataset.yaml": (lambda r: (r / "dataset.yaml").unlink(), "dataset.yaml", "missing dataset.yaml"),
+    "missing dataset.yaml": (lambda r: (r / "dataset.yaml").unlink(), "dataset.yaml", "file is missing"),
     "part without mesh": (lambda r: (r / MESH).unlink(), "parts/dsub9", "no mesh file"),
     "part without trials": (lambda r: [p.unlink() for p in (r / "parts/dsub9/trials").iterdir()],
                             "parts/dsub9", "no trials"),
     "empty mesh": (lambda r: (r / MESH).write_bytes(b""), MESH, "mesh file is empty"),
-    "not a mesh": (lambda r: (r / MESH).write_bytes(b"\x00\x01garbage" * 50), MESH, "mesh"),
+    "not a mesh": (lambda r: (r / MESH).write_bytes(b"\x00\x01garbage" * 50), MESH, "not a mesh"),
     "mesh without faces": (lambda r: ((r / MESH).unlink(), (r / "parts/dsub9/mesh.obj").write_text(
         "v 0 0 0\nv 1 0 0\nv 0 1 0\n")), "parts/dsub9/mesh.obj", "no faces"),
+    "text that is not a mesh": (lambda r: (r / MESH).write_text("hello, I am not an STL\n"), MESH, "not a"),
     "empty csv": (_corrupt_csv(lambda r: ""), TRIAL, "empty"),
     "missing column": (_corrupt_csv(lambda r: "t,p_z\n0,0\n0.1,1\n"), TRIAL, "missing column(s) ['F_z'"),
-    "nan": (_corrupt_csv(lambda r: HEADER + "0,0,0,0\n0.002,0.1,nan,0\n0.004,0.2,1,0\n"), TRIAL, "NaN"),
+    "nan": (_corrupt_csv(lambda r: HEADER + "0,0,0,0\n0.002,0.1,nan,0\n0.004,0.2,1,0\n"), TRIAL, "row 2 (nan)"),
+    "text in a number column": (_corrupt_csv(lambda r: HEADER + "0,0,0,0\n0.002,abc,0,0\n"), TRIAL, "('abc')"),
     "inf": (_corrupt_csv(lambda r: HEADER + "0,0,0,0\n0.002,inf,0,0\n0.004,0.2,1,0\n"), TRIAL, "infinite"),
     "non-increasing time": (_corrupt_csv(lambda r: HEADER + "0,0,0,0\n0.002,0.1,0,0\n0.002,0.2,1,0\n"),
                             TRIAL, "not strictly increasing (at data row 3)"),

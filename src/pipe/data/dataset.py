@@ -84,8 +84,9 @@ def read_numeric_csv(path: Path, columns: tuple[str, ...]) -> dict[str, np.ndarr
         bad = np.flatnonzero(~np.isfinite(values))
         if bad.size:
             raw = frame[name].iloc[bad[0]]
+            shown = repr(raw) if isinstance(raw, str) else str(raw)
             raise DatasetError(f"column {name!r} has {bad.size} missing, non-numeric, NaN or infinite value(s), "
-                               f"first at data row {bad[0] + 1} ({raw!r})", path)
+                               f"first at data row {bad[0] + 1} ({shown})", path)
         out[name] = values
     return out
 

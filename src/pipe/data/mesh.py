@@ -35,7 +35,7 @@ def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise DatasetError(f"not a readable {path.suffix} mesh ({type(exc).__name__}: {exc})", path) from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise DatasetError("mesh has no faces (an empty scene, a point cloud or only lines)", path)
+        raise DatasetError("no triangles could be read: not a mesh, or one with no faces (only points or lines)", path)
     mesh = loaded
     mesh.merge_vertices(merge_tex=True, merge_norm=True)
     mesh.remove_unreferenced_vertices()

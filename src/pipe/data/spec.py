@@ -92,7 +92,7 @@ def load_spec(root: str | Path) -> DatasetSpec:
     if not root.is_dir():
         raise DatasetError("dataset folder does not exist", root)
     if not path.is_file():
-        raise DatasetError(f"missing {SPEC_FILE}: every dataset folder declares its name, units and columns there "
+        raise DatasetError("file is missing: every dataset folder declares its name, units and columns in it "
                            "(see the README's 'Dataset layout')", path)
     try:
         doc = yaml.safe_load(path.read_text())
