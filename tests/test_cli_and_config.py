@@ -71,12 +71,13 @@ def run_train(*overrides: str) -> subprocess.CompletedProcess:
                           cwd="/", timeout=300)
 
 
-def test_train_prepares_the_domain_from_any_directory(tmp_path):
+def test_train_runs_a_paper_domain_from_any_directory(tmp_path):
     data = tmp_path / "pins"
     main(["data", "generate", str(data), "--parts", ",".join(sum(PAPER_SPLITS["pins"], []))])
-    result = run_train("domain=pins", f"data.dir={data}", f"hydra.run.dir={tmp_path / 'run'}")
+    result = run_train("domain=pins", "experiment=smoke", f"data.dir={data}", f"hydra.run.dir={tmp_path / 'run'}")
     assert result.returncode == 0, result.stderr
-    assert "taper8" in result.stdout and "data ready" in result.stdout
+    assert "taper8" in result.stdout and "dowel6" in result.stdout and "domain mean" in result.stdout
+    assert (tmp_path / "run" / "metrics.json").is_file()
 
 
 def test_train_names_missing_parts_and_exits_nonzero(small_dataset, tmp_path):

@@ -1,0 +1,85 @@
+"""The paper's regression head: normalised Gaussian local models over depth (paper, "Regression Head").
+
+Per parameter of Theta, N local models with amplitudes a > 0 (softplus), centres b and widths c:
+    delta_s = delta / sum(delta) * max|p_z|      (positive sections that tile the depth range)
+    b = delta_s^T Q,  Q = U - I/2                (each centre in the middle of its section)
+    c between the widths at which a local model falls to 1/20 and to 1/3 of its peak at its section edges
+    Theta(p) = sum_i a_i Psi_i(p) / sum_n Psi_n(p),  Psi_i(p) = exp(-(p - b_i)^2 / (2 c_i^2))
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from pipe.model.interfaces import ParameterHead
+
+SOFTPLUS_ONE = math.log(math.e - 1.0)  # softplus(SOFTPLUS_ONE) = 1: amplitudes start at 1
+
+
+def width_at_edge(half_section: torch.Tensor, ratio: float) -> torch.Tensor:
+    """The width c for which exp(-h^2 / (2 c^2)) = ratio at distance h from the centre."""
+    return half_section / math.sqrt(2.0 * math.log(1.0 / ratio))
+
+
+def centres(sections: torch.Tensor) -> torch.Tensor:
+    """b = delta_s^T (U - I/2) for sections (..., N)."""
+    n = sections.shape[-1]
+    q = torch.triu(torch.ones(n, n, dtype=sections.dtype, device=sections.device)) - 0.5 * torch.eye(
+        n, dtype=sections.dtype, device=sections.device)
+    return sections @ q
+
+
+@dataclass
+class GaussianProfile:
+    """Local models of a batch: amplitudes, centres and widths, each (B, P, N)."""
+
+    amplitude: torch.Tensor
+    centre: torch.Tensor
+    width: torch.Tensor
+
+    def weights(self, depth: torch.Tensor) -> torch.Tensor:
+        """Normalised Psi_i(p) / sum_n Psi_n(p) at depth (B, T): (B, T, P, N), computed as a softmax."""
+        p = depth[:, :, None, None]
+        log_psi = -(p - self.centre[:, None]) ** 2 / (2 * self.width[:, None] ** 2)
+        return torch.softmax(log_psi, dim=-1)
+
+    def __call__(self, depth: torch.Tensor) -> torch.Tensor:
+        return (self.weights(depth) * self.amplitude[:, None]).sum(-1)
+
+
+class ResidualBlock(nn.Module):
+    def __init__(self, width: int) -> None:
+        super().__init__()
+        self.body = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, width))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.relu(x + self.body(x))
+
+
+class GaussianHead(ParameterHead):
+    def __init__(self, latent_dim: int, num_parameters: int, num_local_models: int = 10, hidden: int = 128,
+                 edge_ratio_min: float = 1 / 20, edge_ratio_max: float = 1 / 3) -> None:
+        super().__init__(latent_dim, num_parameters)
+        self.n = num_local_models
+        self.edge_ratios = (edge_ratio_min, edge_ratio_max)
+        self.trunk = nn.Sequential(nn.Linear(latent_dim, hidden), nn.ReLU(),
+                                   *(ResidualBlock(hidden) for _ in range(3)))
+        out = num_parameters * num_local_models
+        self.amplitude, self.section, self.width = (
+            nn.Sequential(nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, out)) for _ in range(3))
+
+    def forward(self, z: torch.Tensor, depth_max: torch.Tensor) -> GaussianProfile:
+        h = self.trunk(z)
+        shape = (z.shape[0], self.num_parameters, self.n)
+        amplitude = F.softplus(self.amplitude(h).view(shape) + SOFTPLUS_ONE)
+        delta = F.softplus(self.section(h).view(shape)) + 1e-6
+        sections = delta / delta.sum(-1, keepdim=True) * depth_max.abs()[:, None, None]
+        c_min = width_at_edge(sections / 2, self.edge_ratios[0])
+        c_max = width_at_edge(sections / 2, self.edge_ratios[1])
+        width = c_min + torch.sigmoid(self.width(h).view(shape)) * (c_max - c_min)
+        return GaussianProfile(amplitude, centres(sections), width)

@@ -1,0 +1,28 @@
+"""mds2: the paper's mass-damper-spring contact model with depth-varying parameters,
+b0(p) p = a0(p) F'' + a1(p) F' + a2(p) F, zero initial state (paper, eq. "dynamic model")."""
+
+from __future__ import annotations
+
+import torch
+
+from pipe.model.interfaces import DynamicModel
+from pipe.model.ltv import midpoints, simulate
+
+
+class MDS2(DynamicModel):
+    parameter_names = ("a0", "a1", "a2", "b0")
+
+    def __init__(self, time_constant: float = 0.02) -> None:
+        super().__init__()
+        self.time_constant = time_constant  # s: the a0, a1 scales put the contact dynamics near this
+
+    def parameter_scales(self, force_scale: float, depth_scale: float) -> torch.Tensor:
+        tau = self.time_constant
+        return torch.tensor([tau * tau, 2 * tau, 1.0, force_scale / depth_scale])
+
+    def forward(self, theta: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
+        a0, a1, a2, b0 = midpoints(theta).unbind(-1)
+        zero, one = torch.zeros_like(a0), torch.ones_like(a0)
+        a = torch.stack([torch.stack([zero, one], -1), torch.stack([-a2 / a0, -a1 / a0], -1)], -2)
+        b = torch.stack([zero, b0 / a0], -1)
+        return simulate(a, b, midpoints(depth), dt)[..., 0]

@@ -1,0 +1,52 @@
+"""What the core knows of the three plugin kinds. Plugins subclass these; the core never imports a plugin.
+
+- encoder (`conf/encoder/`): a `pipe.model.vae.PointCloudVAE` subclass: point cloud -> latent distribution
+  and reconstruction;
+- head (`conf/head/`): latent -> parameter profiles Theta(p_z), a `ParameterHead`;
+- dynamic model (`conf/model/`): Theta(p_z(t)) and p_z(t) -> force F(t), a `DynamicModel`.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Protocol
+
+import torch
+from torch import nn
+
+
+class ParameterProfile(Protocol):
+    """Positive parameter profiles of one batch of parts: call with depths (B, T) to get Theta (B, T, P)."""
+
+    def __call__(self, depth: torch.Tensor) -> torch.Tensor: ...
+
+
+class ParameterHead(nn.Module, ABC):
+    """Maps a latent code to dimensionless positive parameter profiles over depth."""
+
+    def __init__(self, latent_dim: int, num_parameters: int) -> None:
+        super().__init__()
+        self.latent_dim = latent_dim
+        self.num_parameters = num_parameters
+
+    @abstractmethod
+    def forward(self, z: torch.Tensor, depth_max: torch.Tensor) -> ParameterProfile:
+        """z (B, latent_dim), depth_max (B,) the largest |p_z| of each trajectory, in mm."""
+
+
+class DynamicModel(nn.Module, ABC):
+    """A parametric model M(Theta, u) -> x driven by the depth p_z(t), answering the force F(t)."""
+
+    parameter_names: tuple[str, ...] = ()
+
+    @abstractmethod
+    def parameter_scales(self, force_scale: float, depth_scale: float) -> torch.Tensor:
+        """Typical magnitude of each parameter (P,) for forces of `force_scale` N at `depth_scale` mm.
+
+        The head's dimensionless profiles are multiplied by these, so that a head that starts near 1
+        starts from a plausible model.
+        """
+
+    @abstractmethod
+    def forward(self, theta: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
+        """theta (B, T, P) at the samples of depth (B, T) [mm], sample period dt [s] -> force (B, T) [N]."""

@@ -1,0 +1,79 @@
+"""The two LightningModules of the paper's training (section "Training")."""
+
+from __future__ import annotations
+
+import lightning as L
+import torch
+
+from pipe.model.chamfer import chamfer, mean_nearest_distance
+from pipe.model.pipe_model import PIPEModel
+from pipe.model.vae import PointCloudVAE, kl_divergence
+from pipe.training.batches import TrialBatch
+
+
+class VAEStage(L.LightningModule):
+    """Stage 1: the VAE reconstructs point clouds; loss = Chamfer (paper) + kl_weight * KL."""
+
+    def __init__(self, encoder: PointCloudVAE, lr: float, kl_weight: float) -> None:
+        super().__init__()
+        self.encoder, self.lr, self.kl_weight = encoder, lr, kl_weight
+
+    def _step(self, clouds: torch.Tensor, split: str) -> torch.Tensor:
+        out = self.encoder(clouds)
+        rec = chamfer(out.recon, clouds).mean()
+        kl = kl_divergence(out.mu, out.logvar).mean()
+        loss = rec + self.kl_weight * kl
+        size = len(clouds)
+        self.log_dict({f"{split}/loss": loss, f"{split}/chamfer": rec, f"{split}/kl": kl}, batch_size=size,
+                      on_epoch=True, on_step=False, prog_bar=split == "val")
+        if split == "val":
+            self.log("val/nn_distance_mm", mean_nearest_distance(out.recon, clouds).mean(), batch_size=size)
+        return loss
+
+    def training_step(self, clouds: torch.Tensor, batch_idx: int) -> torch.Tensor:
+        return self._step(clouds, "train")
+
+    def validation_step(self, clouds: torch.Tensor, batch_idx: int) -> None:
+        self._step(clouds, "val")
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.encoder.parameters(), lr=self.lr)
+
+
+def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Paper: L_reg = e^T e / n over the real (unpadded) samples."""
+    err = (pred - target)[mask]
+    return err.pow(2).mean()
+
+
+class HeadStage(L.LightningModule):
+    """Stage 2: encoder frozen; the head is trained through the dynamic model against measured force (MSE).
+
+    The frozen encoder's latent codes of the domain's parts are computed once (`latents`, one row per part)
+    instead of re-encoding the same clouds at every step.
+    """
+
+    def __init__(self, model: PIPEModel, latents: torch.Tensor, lr: float, dt: float) -> None:
+        super().__init__()
+        self.model, self.lr, self.dt = model, lr, dt
+        self.register_buffer("latents", latents)
+        model.encoder.requires_grad_(False)
+
+    def _step(self, batch: TrialBatch, split: str) -> torch.Tensor:
+        pred = self.model(self.latents[batch.part], batch.depth, self.dt)
+        loss = masked_mse(pred, batch.force, batch.mask)
+        self.log(f"{split}/loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False,
+                 prog_bar=split == "val")
+        return loss
+
+    def training_step(self, batch: TrialBatch, batch_idx: int) -> torch.Tensor:
+        return self._step(batch, "train")
+
+    def validation_step(self, batch: TrialBatch, batch_idx: int) -> None:
+        self._step(batch, "val")
+
+    def on_train_epoch_start(self) -> None:
+        self.model.encoder.eval()  # keep batch-norm statistics frozen too
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.model.head.parameters(), lr=self.lr)

@@ -1,0 +1,193 @@
+"""The model's math against independent references: scipy for the ODEs, numpy brute force for Chamfer,
+hand-computed values for the head's local models."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.integrate import solve_ivp
+
+from pipe.model.chamfer import chamfer, mean_nearest_distance
+from plugins.encoder.dgcnn import EdgeConv, gather_neighbours, knn
+from plugins.head.gaussian import GaussianHead, GaussianProfile, centres, width_at_edge
+from plugins.model.mds1 import MDS1
+from plugins.model.mds2 import MDS2
+
+
+
+@pytest.fixture(autouse=True)
+def float64():
+    """Reference comparisons in double precision, restored afterwards for the other test modules."""
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(previous)
+
+
+def depth_of(t):
+    """A smooth insertion: approach, ramp to 8 mm, hold."""
+    return 8.0 * (1 - np.cos(np.pi * np.clip(t / 0.6, 0, 1))) / 2
+
+
+def theta_mds2(p):
+    return np.stack([2e-4 * (1 + 0.5 * np.sin(p)), 0.03 * (1 + 0.3 * p / 8), 1 + 0.5 * p / 8,
+                     2 + np.cos(p)], axis=-1)
+
+
+def reference(rhs, t_end, times, n_states):
+    sol = solve_ivp(rhs, (0, t_end), np.zeros(n_states), method="Radau", t_eval=times, rtol=1e-9, atol=1e-11,
+                    max_step=1e-3)
+    return sol.y[0]
+
+
+@pytest.mark.parametrize("dt", [0.002, 0.01])
+def test_mds2_matches_scipy_with_varying_parameters(dt):
+    times = np.arange(0, 1.0 + 1e-9, dt)
+
+    def rhs(t, x):
+        a0, a1, a2, b0 = theta_mds2(depth_of(t))
+        return [x[1], (b0 * depth_of(t) - a1 * x[1] - a2 * x[0]) / a0]
+
+    expected = reference(rhs, 1.0, times, 2)
+    p = torch.tensor(depth_of(times))[None]
+    got = MDS2()(torch.tensor(theta_mds2(depth_of(times)))[None], p, dt)[0].numpy()
+    assert np.abs(got - expected).max() < 0.01 * np.abs(expected).max()
+
+
+def test_mds1_matches_scipy_with_varying_parameters():
+    dt = 0.005
+    times = np.arange(0, 1.0 + 1e-9, dt)
+    theta = lambda p: np.stack([0.05 * (1 + 0.5 * np.sin(p)), 1 + p / 8, 3 + np.cos(p)], -1)  # noqa: E731
+
+    def rhs(t, x):
+        a1, a2, b0 = theta(depth_of(t))
+        return [(b0 * depth_of(t) - a2 * x[0]) / a1]
+
+    expected = reference(rhs, 1.0, times, 1)
+    got = MDS1()(torch.tensor(theta(depth_of(times)))[None], torch.tensor(depth_of(times))[None], dt)[0]
+    assert np.abs(got.numpy() - expected).max() < 0.01 * np.abs(expected).max()
+
+
+@pytest.mark.parametrize("a0", [1e-12, 1e-8, 1e-4, 1.0])
+@pytest.mark.parametrize("a1", [1e-9, 1e-3, 10.0])
+def test_mds2_is_stable_for_stiff_and_slow_positive_parameters(a0, a1):
+    """Exact discretisation never blows up. For a monotone depth the force is bounded by the step response:
+    at most the static force b0 / a2 * max p when overdamped (zeta >= 1), at most twice that otherwise."""
+    times = np.arange(0, 2.0, 0.01)
+    p = torch.tensor(depth_of(times))[None]
+    theta = torch.tensor([a0, a1, 1.0, 3.0]).expand(1, len(times), 4)
+    force = MDS2()(theta, p, 0.01)
+    assert torch.isfinite(force).all()
+    zeta = a1 / (2 * math.sqrt(a0 * 1.0))
+    bound = 3.0 * 8.0 * (1.0 if zeta >= 1 else 2.0)
+    assert force.abs().max() <= bound * (1 + 1e-6)
+
+
+def test_mds2_settles_at_the_static_force():
+    times = np.arange(0, 3.0, 0.01)
+    theta = torch.tensor([1e-4, 0.02, 2.0, 5.0]).expand(1, len(times), 4)
+    force = MDS2()(theta, torch.tensor(depth_of(times))[None], 0.01)
+    assert force[0, -1].item() == pytest.approx(5.0 / 2.0 * 8.0, rel=1e-6)
+
+
+def test_solver_is_differentiable():
+    times = np.arange(0, 0.5, 0.01)
+    theta = torch.tensor([1e-4, 0.02, 2.0, 5.0]).expand(2, len(times), 4).clone().requires_grad_()
+    MDS2()(theta, torch.tensor(depth_of(times)).expand(2, -1), 0.01).sum().backward()
+    assert torch.isfinite(theta.grad).all() and theta.grad.abs().sum() > 0
+
+
+def test_chamfer_matches_brute_force():
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(2, 50, 3)), rng.normal(size=(2, 70, 3))
+    for b in range(2):
+        d = ((x[b][:, None] - y[b][None]) ** 2).sum(-1)
+        expected = d.min(1).sum() + d.min(0).sum()
+        assert chamfer(torch.tensor(x), torch.tensor(y))[b].item() == pytest.approx(expected, rel=1e-10)
+        mean_nn = 0.5 * (np.sqrt(d.min(1)).mean() + np.sqrt(d.min(0)).mean())
+        assert mean_nearest_distance(torch.tensor(x), torch.tensor(y))[b].item() == pytest.approx(mean_nn)
+
+
+def test_chamfer_is_zero_for_identical_clouds():
+    x = torch.randn(1, 30, 3)
+    assert chamfer(x, x[:, torch.randperm(30)]).item() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_centres_are_the_section_midpoints():
+    sections = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    # b = delta_s^T (U - I/2): 0.5, 1 + 1, 3 + 1.5, 6 + 2
+    np.testing.assert_allclose(centres(sections)[0].numpy(), [0.5, 2.0, 4.5, 8.0])
+
+
+def test_width_bounds_give_the_papers_edge_values():
+    half = torch.tensor(0.7)
+    for ratio in (1 / 20, 1 / 3):
+        c = width_at_edge(half, ratio)
+        assert math.exp(-(half.item() ** 2) / (2 * c.item() ** 2)) == pytest.approx(ratio)
+
+
+def test_head_sections_tile_the_depth_range_and_widths_are_bounded():
+    torch.manual_seed(0)
+    head = GaussianHead(latent_dim=8, num_parameters=4)
+    depth_max = torch.tensor([8.0, 30.0, 2.5])
+    profile = head(torch.randn(3, 8), depth_max)
+    b, c = profile.centre, profile.width
+    # the last centre sits half a section before max|p_z|, the first half a section after 0
+    first_section, last_section = 2 * b[..., 0], 2 * (depth_max[:, None] - b[..., -1])
+    sections = torch.cat([first_section[..., None], torch.diff(b, dim=-1)], -1)
+    assert torch.all(first_section > 0) and torch.all(last_section > 0)
+    assert torch.all(torch.diff(b, dim=-1) > 0)
+    # reconstruct each section from the centres: delta_j = 2 (b_j - edge_{j-1}); they sum to max|p_z|
+    edges = torch.zeros_like(b[..., :1])
+    deltas = []
+    for j in range(b.shape[-1]):
+        delta = 2 * (b[..., j:j + 1] - edges)
+        deltas.append(delta)
+        edges = edges + delta
+    delta = torch.cat(deltas, -1)
+    np.testing.assert_allclose(delta.sum(-1).detach().numpy(), depth_max[:, None].expand(3, 4).numpy(), rtol=1e-9)
+    psi_edge = torch.exp(-(delta / 2) ** 2 / (2 * c ** 2))
+    assert torch.all(psi_edge >= 1 / 20 - 1e-9) and torch.all(psi_edge <= 1 / 3 + 1e-9)
+    assert sections.shape == b.shape
+
+
+def test_profile_is_a_normalised_weighted_sum():
+    profile = GaussianProfile(amplitude=torch.tensor([[[1.0, 3.0]]]), centre=torch.tensor([[[1.0, 3.0]]]),
+                              width=torch.tensor([[[1.0, 1.0]]]))
+    p = torch.tensor([[0.0, 2.0, 10.0]])
+    psi = np.exp(-((p.numpy()[0][:, None] - np.array([1.0, 3.0])) ** 2) / 2)
+    expected = (psi * [1.0, 3.0]).sum(1) / psi.sum(1)
+    np.testing.assert_allclose(profile(p)[0, :, 0].numpy(), expected)
+    assert profile(p)[0, 1, 0].item() == pytest.approx(2.0)     # halfway between two equal models
+    weights = profile.weights(p)
+    np.testing.assert_allclose(weights.sum(-1).numpy(), 1.0)
+
+
+def test_profile_stays_within_its_amplitudes():
+    torch.manual_seed(1)
+    head = GaussianHead(latent_dim=4, num_parameters=2)
+    profile = head(torch.randn(5, 4), torch.full((5,), 10.0))
+    theta = profile(torch.linspace(-5, 15, 200).expand(5, -1))
+    low = profile.amplitude.min(-1).values[:, None]
+    high = profile.amplitude.max(-1).values[:, None]
+    assert torch.all(theta >= low - 1e-9) and torch.all(theta <= high + 1e-9)
+
+
+def test_edgeconv_per_point_projection_equals_the_per_edge_convolution():
+    torch.manual_seed(0)
+    conv = EdgeConv(8, 16, k=5).eval()
+    x = torch.randn(2, 8, 40)
+    neighbours = gather_neighbours(x, knn(x, 5))
+    centre = x.unsqueeze(-1).expand_as(neighbours)
+    edges = torch.nn.functional.conv2d(torch.cat([centre, neighbours - centre], 1), conv.weight.unsqueeze(-1))
+    expected = conv.act(conv.norm(edges)).max(-1).values
+    torch.testing.assert_close(conv(x), expected)
+
+
+def test_knn_includes_the_point_itself_and_its_true_neighbours():
+    x = torch.tensor([[[0.0, 1.0, 10.0, 11.5]]])   # 1-D points along one channel
+    idx = knn(x, 2)[0]
+    assert idx.tolist() == [[0, 1], [1, 0], [2, 3], [3, 2]]
