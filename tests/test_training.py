@@ -146,6 +146,26 @@ def test_a_plugin_in_another_folder_trains_without_editing_the_core(tiny_data, t
     assert "MeanPoolVAE" in result.stdout and "dsub26" in result.stdout
 
 
+def test_the_readme_plugin_example_trains(tiny_data, tmp_path):
+    """The 'Writing a plugin' example, taken from README.md as it stands, in a package of its own."""
+    blocks = (ROOT / "README.md").read_text().split("```")
+    module = next(b for b in blocks if b.startswith("python\n# plugins/model/mymodel.py"))
+    conf = next(b for b in blocks if b.startswith("yaml\n# conf/model/mymodel.yaml"))
+    package = tmp_path / "readme_plugins" / "model"
+    package.mkdir(parents=True)
+    for folder in (package.parent, package):
+        (folder / "__init__.py").write_text("")
+    (package / "mymodel.py").write_text(module.removeprefix("python\n"))
+    (tmp_path / "conf" / "model").mkdir(parents=True)
+    (tmp_path / "conf" / "model" / "mymodel.yaml").write_text(
+        conf.removeprefix("yaml\n").replace("plugins.model.mymodel", "readme_plugins.model.mymodel"))
+    result = run_train("experiment=smoke", "model=mymodel", f"hydra.searchpath=[file://{tmp_path / 'conf'}]",
+                       f"data.dir={tiny_data}", f"hydra.run.dir={tmp_path / 'run'}", *TINY_DOMAIN,
+                       env={"PYTHONPATH": str(tmp_path)})
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "MyModel" in result.stdout
+
+
 @pytest.mark.parametrize("overrides, message", [
     (["encoder._target_=torch.nn.Identity"], "the encoder plugin torch.nn.Identity is not a pipe.model.vae.PointCloudVAE"),
     (["+head.colour=red"], "the head plugin plugins.head.gaussian.GaussianHead could not be built: TypeError"),
