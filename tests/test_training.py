@@ -86,6 +86,18 @@ def test_a_run_resumes_from_its_last_checkpoints(tiny_data, tmp_path):
     assert not (tmp_path / "ignored").exists()
 
 
+def test_a_new_run_never_reuses_or_overwrites_checkpoints(tiny_data, tmp_path):
+    from pipe.errors import PipeError
+
+    train_domain(smoke_config(tiny_data, tmp_path))
+    before = (tmp_path / "checkpoints/head/last.ckpt").read_bytes()
+    with pytest.raises(PipeError, match="already holds the checkpoints of an earlier run"):
+        train_domain(smoke_config(tiny_data, tmp_path))
+    assert (tmp_path / "checkpoints/head/last.ckpt").read_bytes() == before
+    with pytest.raises(PipeError, match="without checkpoints"):
+        train_domain(smoke_config(tiny_data, tmp_path / "x", f"resume={tmp_path / 'nothing'}"))
+
+
 def test_head_loss_goes_down_on_data_the_model_can_explain():
     """Forces simulated by mds2 itself from a known profile: the head learns them from two latent codes."""
     from pipe.model.pipe_model import PIPEModel

@@ -67,11 +67,12 @@ def data_scales(parts: list[PartData]) -> tuple[float, float]:
             float(np.mean([np.abs(p.depth).max() for p in profiles])))
 
 
-def fit_stage(trainer: L.Trainer, module: L.LightningModule, train, val, run_dir: Path, stage: str) -> float:
-    """Fit (resuming from the stage's last checkpoint when there is one), then load the best weights."""
+def fit_stage(trainer: L.Trainer, module: L.LightningModule, train, val, run_dir: Path, stage: str,
+              resume: bool) -> float:
+    """Fit (when resuming, from the stage's last checkpoint if it has one), then load the best weights."""
     last = run_dir / "checkpoints" / stage / "last.ckpt"
     start = time.perf_counter()
-    trainer.fit(module, train, val, ckpt_path=str(last) if last.is_file() else None)
+    trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
     best = trainer.checkpoint_callback.best_model_path
     if best:
         module.load_state_dict(torch.load(best, map_location="cpu", weights_only=True)["state_dict"])
@@ -93,11 +94,18 @@ def evaluate(model: PIPEModel, parts: list[PartData], latents: torch.Tensor, ind
 
 
 def train_domain(cfg: DictConfig) -> RunResult:
+    resume = cfg.resume is not None
+    run_dir = Path(cfg.resume or cfg.paths.output_dir)
+    if resume and not (run_dir / "checkpoints").is_dir():
+        raise PipeError("resume= names a folder without checkpoints; give the output folder of an earlier run",
+                        run_dir)
+    if not resume and any((run_dir / "checkpoints").glob("*/*.ckpt")):
+        raise PipeError("already holds the checkpoints of an earlier run; continue it with resume=<this folder> "
+                        "or choose another hydra.run.dir", run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
     L.seed_everything(cfg.seed, workers=True)
     data: DomainData = prepare_domain(cfg.data, cfg.domain)
     encoder, head, dynamics = build_components(cfg)
-    run_dir = Path(cfg.resume or cfg.paths.output_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
     seconds: dict[str, float] = {}
@@ -107,7 +115,7 @@ def train_domain(cfg: DictConfig) -> RunResult:
     trainer = make_trainer(cfg.trainer, run_dir, "vae", vae_cfg.epochs, has_val=bool(val))
     seconds["vae"] = fit_stage(trainer, vae, cloud_loader(train, vae_cfg.batch_size, True, cfg.seed),
                                cloud_loader(val, vae_cfg.batch_size, False, cfg.seed) if val else None,
-                               run_dir, "vae")
+                               run_dir, "vae", resume)
 
     all_parts = train + val + test
     index = {p.name: i for i, p in enumerate(all_parts)}
@@ -120,7 +128,7 @@ def train_domain(cfg: DictConfig) -> RunResult:
     trainer = make_trainer(cfg.trainer, run_dir, "head", head_cfg.epochs, has_val=bool(val))
     seconds["head"] = fit_stage(trainer, stage, trial_loader(train, index, head_cfg.batch_size, True, cfg.seed),
                                 trial_loader(val, index, head_cfg.batch_size, False, cfg.seed) if val else None,
-                                run_dir, "head")
+                                run_dir, "head", resume)
 
     per_part = evaluate(model, test, latents, index, dt)
     domain = mean_metrics(list(per_part.values()))
