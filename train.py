@@ -32,14 +32,14 @@ def main(cfg: DictConfig) -> None:
         result = train_domain(cfg)
     except PipeError as err:
         sys.exit(fail(str(err)))
-    table = Table("test part", "FIT(F) [%]", "FIT(dF/dt) [%]", "rms [N]", "rms_rel",
+    table = Table("method", "test part", "FIT(F) [%]", "FIT(dF/dt) [%]", "rms [N]", "rms_rel",
                   title=f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
                         f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
     for row in summary_rows(result):
         table.add_row(*row)
     console.print(table)
-    console.print(f"stage 1 {result.seconds['vae']:.0f} s, stage 2 {result.seconds['head']:.0f} s; "
-                  f"checkpoints and metrics.json in {result.run_dir}")
+    console.print(f"stage 1 {result.seconds['vae']:.0f} s, stage 2 {result.seconds['head']:.0f} s, "
+                  f"evaluation {result.seconds['evaluation']:.0f} s; results in {result.run_dir}")
 
 
 if __name__ == "__main__":

@@ -14,6 +14,14 @@ ROOT = Path(__file__).resolve().parents[1]
 REAL_MESHES = Path(os.environ.get("PIPE_REAL_MESHES", ROOT.parent / "shared" / "real-meshes"))
 
 
+@pytest.fixture(scope="session", autouse=True)
+def mlflow_store(tmp_path_factory) -> str:
+    """Every test (and the commands they start) tracks into a temporary SQLite store, never the project's."""
+    uri = f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
+    os.environ["MLFLOW_TRACKING_URI"] = uri
+    return uri
+
+
 @pytest.fixture(scope="session")
 def small_dataset(tmp_path_factory) -> Path:
     """Two parts of the synthetic dataset (a plug and a pin), generated once per test session."""

@@ -20,6 +20,10 @@ class MDS2(DynamicModel):
         tau = self.time_constant
         return torch.tensor([tau * tau, 2 * tau, 1.0, force_scale / depth_scale])
 
+    def static_force(self, theta: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """At rest F'' = F' = 0: F = b0 / a2 * p."""
+        return theta[..., 3] / theta[..., 2] * depth
+
     def forward(self, theta: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
         a0, a1, a2, b0 = midpoints(theta).unbind(-1)
         zero, one = torch.zeros_like(a0), torch.ones_like(a0)

@@ -80,7 +80,7 @@ def read_numeric_csv(path: Path, columns: tuple[str, ...]) -> dict[str, np.ndarr
         raise DatasetError(f"has {len(frame)} sample(s); a trial needs at least 2", path)
     out = {}
     for name in columns:
-        values = pd.to_numeric(frame[name], errors="coerce").to_numpy(dtype=float)
+        values = pd.to_numeric(frame[name], errors="coerce").to_numpy(dtype=float, copy=True)  # writable
         bad = np.flatnonzero(~np.isfinite(values))
         if bad.size:
             raw = frame[name].iloc[bad[0]]

@@ -8,7 +8,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipe.data.dataset import load_dataset
+import numpy as np
+
+from pipe.data.dataset import StaticCurve, load_dataset
 from pipe.data.domain import SPLITS, Domain, domain_from_config, require_parts
 from pipe.data.mesh import load_mesh
 from pipe.data.preprocess import PointCloud, Profile, preprocess_trial, sample_point_cloud
@@ -23,6 +25,7 @@ class PartData:
     name: str
     cloud: PointCloud
     profiles: list[Profile]
+    statics: list[StaticCurve | None]   # per trial: the true static curve, where the dataset has one
 
 
 @dataclass(frozen=True)
@@ -63,5 +66,12 @@ def prepare_domain(data_cfg: Mapping[str, Any], domain_cfg: Mapping[str, Any]) -
                                        seed=int(data_cfg["cloud_seed"]))
             profiles = [preprocess_trial(t, float(data_cfg["rate_hz"]), int(data_cfg["steady_samples"]))
                         for t in part.trials]
-            splits[split].append(PartData(name, cloud, profiles))
+            splits[split].append(PartData(name, cloud, profiles, [t.static for t in part.trials]))
     return DomainData(domain, root, splits)
+
+
+def data_scales(parts: list[PartData]) -> tuple[float, float]:
+    """Typical force [N] and depth [mm] of the parts' trials: means of their largest magnitudes."""
+    profiles = [p for part in parts for p in part.profiles]
+    return (float(np.mean([np.abs(p.force).max() for p in profiles])),
+            float(np.mean([np.abs(p.depth).max() for p in profiles])))

@@ -50,3 +50,7 @@ class DynamicModel(nn.Module, ABC):
     @abstractmethod
     def forward(self, theta: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
         """theta (B, T, P) at the samples of depth (B, T) [mm], sample period dt [s] -> force (B, T) [N]."""
+
+    def static_force(self, theta: torch.Tensor, depth: torch.Tensor) -> torch.Tensor | None:
+        """The steady-state force at each depth (quasi-static insertion), or None if the model has none."""
+        return None

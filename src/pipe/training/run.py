@@ -5,25 +5,30 @@ from __future__ import annotations
 import json
 import logging
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import lightning as L
+import mlflow
 import numpy as np
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from pipe.data.prepare import DomainData, PartData, prepare_domain
+from pipe.data.prepare import DomainData, PartData, data_scales, prepare_domain
 from pipe.errors import PipeError
-from pipe.metrics import force_metrics, mean_metrics
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import MethodResult, evaluate_methods
+from pipe.evaluation.report import write_report
 from pipe.model.interfaces import DynamicModel, ParameterHead
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
-from pipe.training.batches import cloud_loader, collate_trials, trial_loader
+from pipe.training.batches import cloud_loader, trial_loader
 from pipe.training.stages import HeadStage, VAEStage
+from pipe.tracking import StageLogger, dataset_version, git_commit, log_outputs, tracked_run
 from pipe.training.trainer import make_trainer
 
 log = logging.getLogger(__name__)
@@ -32,10 +37,20 @@ log = logging.getLogger(__name__)
 @dataclass
 class RunResult:
     run_dir: Path
+    domain_name: str
+    counts: dict[str, int]                 # parts per split
     model: PIPEModel
-    per_part: dict[str, dict[str, float]]
-    domain: dict[str, float]
+    latents: torch.Tensor                  # mean codes of all the domain's parts
+    index: dict[str, int]                  # part name -> row of latents
+    test: list[PartData]
+    dt: float
+    results: dict[str, MethodResult]       # "pipe" and each baseline
     seconds: dict[str, float] = field(default_factory=dict)
+    mlflow_run_id: str | None = None
+
+    @property
+    def pipe(self) -> MethodResult:
+        return self.results["pipe"]
 
 
 def build_plugin(kind: str, node: DictConfig, base: type, **kwargs: Any) -> Any:
@@ -60,13 +75,6 @@ def build_components(cfg: DictConfig) -> tuple[PointCloudVAE, ParameterHead, Dyn
     return encoder, head, dynamics
 
 
-def data_scales(parts: list[PartData]) -> tuple[float, float]:
-    """Typical force [N] and depth [mm] of the training trials: means of their largest magnitudes."""
-    profiles = [p for part in parts for p in part.profiles]
-    return (float(np.mean([np.abs(p.force).max() for p in profiles])),
-            float(np.mean([np.abs(p.depth).max() for p in profiles])))
-
-
 def fit_stage(trainer: L.Trainer, module: L.LightningModule, train, val, run_dir: Path, stage: str,
               resume: bool) -> float:
     """Fit (when resuming, from the stage's last checkpoint if it has one), then load the best weights."""
@@ -77,20 +85,6 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train, val, run_dir
     if best:
         module.load_state_dict(torch.load(best, map_location="cpu", weights_only=True)["state_dict"])
     return time.perf_counter() - start
-
-
-@torch.no_grad()
-def evaluate(model: PIPEModel, parts: list[PartData], latents: torch.Tensor, index: dict[str, int],
-             dt: float) -> dict[str, dict[str, float]]:
-    """Per part: the paper's metrics of each trial, averaged over the part's trials."""
-    model.eval()
-    results = {}
-    for part in parts:
-        batch = collate_trials([(index[part.name], p.depth, p.force) for p in part.profiles])
-        pred = model(latents[batch.part], batch.depth, dt).numpy()
-        rows = [force_metrics(p.force, pred[i, : len(p.force)], dt) for i, p in enumerate(part.profiles)]
-        results[part.name] = mean_metrics(rows)
-    return results
 
 
 def train_domain(cfg: DictConfig) -> RunResult:
@@ -107,12 +101,39 @@ def train_domain(cfg: DictConfig) -> RunResult:
     data: DomainData = prepare_domain(cfg.data, cfg.domain)
     encoder, head, dynamics = build_components(cfg)
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    names = {kind: cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "head", "model")}
+    tags = {"domain": data.domain.name, **names, "git_commit": git_commit(Path(cfg.paths.root)),
+            "dataset": str(data.dataset_dir), "dataset_version": dataset_version(data.dataset_dir)}
+    tracking = cfg.mlflow.enabled
+    run_name = f"{data.domain.name} {names['encoder']} {names['model']}"
+    with tracked_run(cfg, run_name, tags) if tracking else nullcontext() as active:
+        loggers = [StageLogger(run_id=active.info.run_id, tracking_uri=mlflow.get_tracking_uri())] if tracking else []
+        run = train_and_evaluate(cfg, data, encoder, head, dynamics, run_dir, resume, loggers)
+        if tracking:
+            log_outputs(run, cfg, model_metadata(cfg, run, data))
+            (run_dir / "mlflow_run_id").write_text(active.info.run_id + "\n")
+            run.mlflow_run_id = active.info.run_id
+    return run
+
+
+def model_metadata(cfg: DictConfig, run: RunResult, data: DomainData) -> dict[str, Any]:
+    """What predict.py needs besides the weights: preprocessing settings and the training parts' sizes."""
+    extents = [float(np.ptp(p.cloud.points, axis=0).max()) for p in data.splits["train"]]
+    return {"domain": data.domain.name, "points": cfg.data.points, "cloud_seed": cfg.data.cloud_seed,
+            "rate_hz": cfg.data.rate_hz, "parameter_names": list(run.model.dynamics.parameter_names),
+            "train_parts": list(data.domain.train), "train_size_mm": [min(extents), max(extents)],
+            "depth_scale_mm": data_scales(data.splits["train"])[1]}
+
+
+def train_and_evaluate(cfg: DictConfig, data: DomainData, encoder: PointCloudVAE, head: ParameterHead,
+                       dynamics: DynamicModel, run_dir: Path, resume: bool, loggers: list) -> RunResult:
+    """Both training stages, then PIPE and the baselines on the test parts, and the report."""
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
     seconds: dict[str, float] = {}
 
     vae_cfg = cfg.stages.vae
     vae = VAEStage(encoder, lr=vae_cfg.lr, kl_weight=vae_cfg.kl_weight)
-    trainer = make_trainer(cfg.trainer, run_dir, "vae", vae_cfg.epochs, has_val=bool(val))
+    trainer = make_trainer(cfg.trainer, run_dir, "vae", vae_cfg.epochs, bool(val), loggers)
     seconds["vae"] = fit_stage(trainer, vae, cloud_loader(train, vae_cfg.batch_size, True, cfg.seed),
                                cloud_loader(val, vae_cfg.batch_size, False, cfg.seed) if val else None,
                                run_dir, "vae", resume)
@@ -125,20 +146,29 @@ def train_domain(cfg: DictConfig) -> RunResult:
     dt = 1.0 / cfg.data.rate_hz
     head_cfg = cfg.stages.head
     stage = HeadStage(model, latents, lr=head_cfg.lr, dt=dt)
-    trainer = make_trainer(cfg.trainer, run_dir, "head", head_cfg.epochs, has_val=bool(val))
+    trainer = make_trainer(cfg.trainer, run_dir, "head", head_cfg.epochs, bool(val), loggers)
     seconds["head"] = fit_stage(trainer, stage, trial_loader(train, index, head_cfg.batch_size, True, cfg.seed),
                                 trial_loader(val, index, head_cfg.batch_size, False, cfg.seed) if val else None,
                                 run_dir, "head", resume)
 
-    per_part = evaluate(model, test, latents, index, dt)
-    domain = mean_metrics(list(per_part.values()))
-    (run_dir / "metrics.json").write_text(json.dumps({"test": domain, "per_part": per_part,
-                                                      "seconds": seconds}, indent=2) + "\n")
-    return RunResult(run_dir, model, per_part, domain, seconds)
+    start = time.perf_counter()
+    ctx = EvalContext(model, latents, index, train, val, dt, cfg.seed, dict(cfg.evaluation))
+    results = evaluate_methods(ctx, test, ["pipe", *cfg.evaluation.baselines])
+    seconds["evaluation"] = time.perf_counter() - start
+    run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, latents, index,
+                    test, dt, results, seconds)
+    (run_dir / "metrics.json").write_text(json.dumps(
+        {"test": run.pipe.domain, "baselines": {n: r.domain for n, r in results.items() if n != "pipe"},
+         "per_part": run.pipe.per_part, "seconds": seconds}, indent=2) + "\n")
+    write_report(run, run_dir / "report")
+    return run
 
 
-def summary_rows(result: RunResult) -> list[list[Any]]:
-    rows = [[name, *(f"{m[k]:.2f}" for k in ("fit_F", "fit_dF", "rms", "rms_rel"))]
-            for name, m in result.per_part.items()]
-    rows.append(["domain mean", *(f"{result.domain[k]:.2f}" for k in ("fit_F", "fit_dF", "rms", "rms_rel"))])
+METRICS = ("fit_F", "fit_dF", "rms", "rms_rel")
+
+
+def summary_rows(result: RunResult) -> list[list[str]]:
+    """PIPE per test part, then every method's domain mean."""
+    rows = [["pipe", name, *(f"{m[k]:.2f}" for k in METRICS)] for name, m in result.pipe.per_part.items()]
+    rows += [[name, "domain mean", *(f"{r.domain[k]:.2f}" for k in METRICS)] for name, r in result.results.items()]
     return rows

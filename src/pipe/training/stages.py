@@ -24,10 +24,10 @@ class VAEStage(L.LightningModule):
         kl = kl_divergence(out.mu, out.logvar).mean()
         loss = rec + self.kl_weight * kl
         size = len(clouds)
-        self.log_dict({f"{split}/loss": loss, f"{split}/chamfer": rec, f"{split}/kl": kl}, batch_size=size,
-                      on_epoch=True, on_step=False, prog_bar=split == "val")
+        self.log_dict({f"vae/{split}_loss": loss, f"vae/{split}_chamfer": rec, f"vae/{split}_kl": kl},
+                      batch_size=size, on_epoch=True, on_step=False, prog_bar=split == "val")
         if split == "val":
-            self.log("val/nn_distance_mm", mean_nearest_distance(out.recon, clouds).mean(), batch_size=size)
+            self.log("vae/val_nn_distance_mm", mean_nearest_distance(out.recon, clouds).mean(), batch_size=size)
         return loss
 
     def training_step(self, clouds: torch.Tensor, batch_idx: int) -> torch.Tensor:
@@ -62,7 +62,7 @@ class HeadStage(L.LightningModule):
     def _step(self, batch: TrialBatch, split: str) -> torch.Tensor:
         pred = self.model(self.latents[batch.part], batch.depth, self.dt)
         loss = masked_mse(pred, batch.force, batch.mask)
-        self.log(f"{split}/loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False,
+        self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False,
                  prog_bar=split == "val")
         return loss
 

@@ -6,13 +6,14 @@ from pathlib import Path
 
 import lightning as L
 from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar
-from lightning.pytorch.loggers import CSVLogger
+from lightning.pytorch.loggers import CSVLogger, Logger
 from omegaconf import DictConfig
 
 
-def make_trainer(cfg: DictConfig, run_dir: Path, stage: str, epochs: int, has_val: bool) -> L.Trainer:
+def make_trainer(cfg: DictConfig, run_dir: Path, stage: str, epochs: int, has_val: bool,
+                 loggers: list[Logger] = ()) -> L.Trainer:
     """A Trainer that keeps the best (validation loss, else training loss) and the last checkpoint."""
-    monitor = "val/loss" if has_val else "train/loss"
+    monitor = f"{stage}/val_loss" if has_val else f"{stage}/train_loss"   # logged by the stage's module
     checkpoint = ModelCheckpoint(dirpath=run_dir / "checkpoints" / stage, filename="best", monitor=monitor,
                                  mode="min", save_last=True)
     callbacks = [checkpoint]
@@ -24,7 +25,7 @@ def make_trainer(cfg: DictConfig, run_dir: Path, stage: str, epochs: int, has_va
         devices=cfg.devices,
         deterministic=cfg.deterministic,
         callbacks=callbacks,
-        logger=CSVLogger(run_dir / "logs", name=stage, version=""),
+        logger=[CSVLogger(run_dir / "logs", name=stage, version=""), *loggers],
         enable_progress_bar=bool(cfg.progress_bar),
         enable_model_summary=False,
         log_every_n_steps=1,

@@ -1,0 +1,42 @@
+"""What every evaluated method may use: the trained model, the latent codes and the domain's parts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from pipe.data.prepare import PartData, data_scales
+from pipe.model.pipe_model import PIPEModel
+from pipe.training.batches import TrialBatch, collate_trials
+
+
+@dataclass
+class EvalContext:
+    model: PIPEModel              # trained PIPE (its encoder, head and dynamic model)
+    latents: torch.Tensor         # (parts, latent) mean codes of all the domain's parts
+    index: dict[str, int]         # part name -> row of `latents`
+    train: list[PartData]
+    val: list[PartData]
+    dt: float                     # s, sample period of the profiles
+    seed: int = 0
+    settings: dict = field(default_factory=dict)   # per-baseline options from the `evaluation` config
+    cache: dict = field(default_factory=dict)      # results shared between methods (e.g. oracle fits)
+
+    def batch(self, part: PartData) -> TrialBatch:
+        """All trials of a part, padded, tagged with the part's latent row."""
+        return collate_trials([(self.index[part.name], p.depth, p.force) for p in part.profiles])
+
+    def latent(self, part: PartData) -> torch.Tensor:
+        return self.latents[self.index[part.name]]
+
+    @property
+    def scales(self) -> tuple[float, float]:
+        """Typical force [N] and depth [mm] of the training trials."""
+        return data_scales(self.train)
+
+
+def unpad(values: np.ndarray, part: PartData) -> list[np.ndarray]:
+    """Rows of a padded (trials, T) array cut back to each trial's own length."""
+    return [values[i, : len(p.force)] for i, p in enumerate(part.profiles)]

@@ -1,0 +1,57 @@
+"""Run PIPE and the selected baselines on the test parts and score them with the paper's metrics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from pipe.data.prepare import PartData
+from pipe.errors import PipeError
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.methods import METHODS
+from pipe.metrics import force_metrics, mean_metrics, rms
+
+
+@dataclass
+class MethodResult:
+    per_part: dict[str, dict[str, float]]      # metrics averaged over each test part's trials
+    domain: dict[str, float]                   # averaged over the test parts
+    forces: dict[str, list[np.ndarray]]        # predicted force of each test trial, for the plots
+
+
+def static_metrics(method, ctx: EvalContext, part: PartData, trial: int) -> dict[str, float]:
+    """Error of the predicted quasi-static force-depth curve against the stored truth (synthetic data)."""
+    truth = part.statics[trial]
+    if truth is None:
+        return {}
+    depth_max = float(np.abs(part.profiles[trial].depth).max())
+    predicted = method.static(ctx, part, depth_max, truth.depth)
+    if predicted is None:
+        return {}
+    error = rms(truth.force, predicted)
+    return {"static_rms": error, "static_rms_rel": error / float(np.abs(truth.force).max())}
+
+
+def score(method, ctx: EvalContext, part: PartData, forces: list[np.ndarray]) -> dict[str, float]:
+    rows = [force_metrics(p.force, f, ctx.dt) | static_metrics(method, ctx, part, i)
+            for i, (p, f) in enumerate(zip(part.profiles, forces))]
+    keys = set.intersection(*(set(r) for r in rows))
+    return mean_metrics([{k: r[k] for k in sorted(keys)} for r in rows])
+
+
+@torch.no_grad()
+def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -> dict[str, MethodResult]:
+    unknown = [n for n in names if n not in METHODS]
+    if unknown:
+        raise PipeError(f"unknown method(s) {unknown} in evaluation.baselines; available: {list(METHODS)}")
+    ctx.model.eval()
+    results = {}
+    for name in names:
+        method = METHODS[name]()
+        method.fit(ctx)
+        forces = {part.name: method.predict(ctx, part) for part in test}
+        per_part = {part.name: score(method, ctx, part, forces[part.name]) for part in test}
+        results[name] = MethodResult(per_part, mean_metrics(list(per_part.values())), forces)
+    return results

@@ -1,0 +1,225 @@
+"""PIPE and the baselines it is compared with, behind one interface (DESIGN section 5).
+
+- pipe:     the trained model, from the part's latent code.
+- oracle:   the same dynamic model and profile structure fitted to the test part's own recordings
+            (classical system identification, warm-started from PIPE): an upper bound, since it uses the
+            recordings PIPE does not need.
+- nearest:  PIPE's parameters for the training part nearest in latent space.
+- gpr:      Gaussian-process regression from the latent code to the identified parameter profiles of the
+            training parts (each identified like the oracle), the task-parameterised approach.
+- blackbox: a neural network from latent code and depth to force, without the physical model.
+- mean:     the mean training force over depth.
+"""
+
+from __future__ import annotations
+
+import copy
+from abc import ABC, abstractmethod
+
+import numpy as np
+import torch
+from sklearn.gaussian_process import GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+from torch import nn
+
+from pipe.data.prepare import PartData
+from pipe.evaluation.context import EvalContext, unpad
+from pipe.model.interfaces import ParameterHead
+from pipe.training.stages import masked_mse
+
+
+class Method(ABC):
+    """A way to predict a test part's force from what the evaluation context offers."""
+
+    name: str
+
+    def fit(self, ctx: EvalContext) -> None:
+        """Learn whatever the method needs from the training (and validation) parts."""
+
+    @abstractmethod
+    def predict(self, ctx: EvalContext, part: PartData) -> list[np.ndarray]:
+        """Predicted force [N] of each of the part's trials, on the trial's own samples."""
+
+    def static(self, ctx: EvalContext, part: PartData, depth_max: float, depth: np.ndarray) -> np.ndarray | None:
+        """Predicted quasi-static force [N] at the given depths [mm] (trajectory reaching depth_max), if any."""
+        return None
+
+
+def _static_from_head(ctx: EvalContext, head: ParameterHead, z: torch.Tensor, depth_max: float,
+                      depth: np.ndarray) -> np.ndarray | None:
+    p = torch.as_tensor(depth, dtype=torch.float32)[None]
+    theta = head(z[None], torch.tensor([depth_max]))(p) * ctx.model.theta_scale
+    static = ctx.model.dynamics.static_force(theta, p)
+    return None if static is None else static[0].numpy()
+
+
+def _head_forces(ctx: EvalContext, head: ParameterHead, z: torch.Tensor, part: PartData) -> list[np.ndarray]:
+    batch = ctx.batch(part)
+    zs = z.expand(len(batch.part), -1)
+    theta = head(zs, batch.depth.abs().amax(1))(batch.depth) * ctx.model.theta_scale
+    return unpad(ctx.model.dynamics(theta, batch.depth, ctx.dt).numpy(), part)
+
+
+class PIPE(Method):
+    name = "pipe"
+
+    def predict(self, ctx: EvalContext, part: PartData) -> list[np.ndarray]:
+        return _head_forces(ctx, ctx.model.head, ctx.latent(part), part)
+
+    def static(self, ctx, part, depth_max, depth):
+        return _static_from_head(ctx, ctx.model.head, ctx.latent(part), depth_max, depth)
+
+
+def identify(ctx: EvalContext, part: PartData) -> ParameterHead:
+    """System identification of one part: the head's profile structure fitted to the part's own trials
+    (its latent code fixed), starting from PIPE's head. Cached per part in the context."""
+    fits = ctx.cache.setdefault("identified", {})
+    if part.name not in fits:
+        head = copy.deepcopy(ctx.model.head).train()
+        batch, z = ctx.batch(part), ctx.latent(part)
+        optimiser = torch.optim.Adam(head.parameters(), lr=ctx.settings.get("oracle_lr", 1e-3))
+        depth_max = batch.depth.abs().amax(1)
+        with torch.enable_grad():
+            for _ in range(ctx.settings.get("oracle_steps", 200)):
+                optimiser.zero_grad()
+                theta = head(z.expand(len(batch.part), -1), depth_max)(batch.depth) * ctx.model.theta_scale
+                loss = masked_mse(ctx.model.dynamics(theta, batch.depth, ctx.dt), batch.force, batch.mask)
+                loss.backward()
+                optimiser.step()
+        fits[part.name] = head.eval().requires_grad_(False)
+    return fits[part.name]
+
+
+class Oracle(Method):
+    name = "oracle"
+
+    def predict(self, ctx, part):
+        return _head_forces(ctx, identify(ctx, part), ctx.latent(part), part)
+
+    def static(self, ctx, part, depth_max, depth):
+        return _static_from_head(ctx, identify(ctx, part), ctx.latent(part), depth_max, depth)
+
+
+class Nearest(Method):
+    name = "nearest"
+
+    def _nearest(self, ctx: EvalContext, part: PartData) -> torch.Tensor:
+        train = torch.stack([ctx.latent(p) for p in ctx.train])
+        return train[torch.cdist(ctx.latent(part)[None], train)[0].argmin()]
+
+    def predict(self, ctx, part):
+        return _head_forces(ctx, ctx.model.head, self._nearest(ctx, part), part)
+
+    def static(self, ctx, part, depth_max, depth):
+        return _static_from_head(ctx, ctx.model.head, self._nearest(ctx, part), depth_max, depth)
+
+
+class GPR(Method):
+    """Latent code -> log of each identified parameter profile sampled at `grid` fractions of max depth."""
+
+    name = "gpr"
+    grid = np.linspace(0.0, 1.0, 21)
+
+    def fit(self, ctx):
+        rows, targets = [], []
+        for part in ctx.train:
+            head, z = identify(ctx, part), ctx.latent(part)
+            depth_max = float(np.mean([np.abs(p.depth).max() for p in part.profiles]))
+            depth = torch.tensor(self.grid * depth_max, dtype=torch.float32)[None]
+            theta = head(z[None], torch.tensor([depth_max]))(depth) * ctx.model.theta_scale   # (1, G, P)
+            rows.append(z.numpy())
+            targets.append(np.log(theta[0].numpy()).T.ravel())
+        x = np.stack(rows)
+        self.mean, self.std = x.mean(0), x.std(0) + 1e-9
+        kernel = ConstantKernel() * RBF(length_scale=np.sqrt(x.shape[1])) + WhiteKernel(1e-2)
+        self.gp = GaussianProcessRegressor(kernel, normalize_y=True, random_state=ctx.seed)
+        self.gp.fit((x - self.mean) / self.std, np.stack(targets))
+        self.num_parameters = len(ctx.model.dynamics.parameter_names)
+
+    def _theta(self, ctx: EvalContext, part: PartData, depth: np.ndarray, depth_max: float) -> torch.Tensor:
+        log_grid = self.gp.predict(((ctx.latent(part).numpy() - self.mean) / self.std)[None])[0]
+        log_grid = log_grid.reshape(self.num_parameters, len(self.grid))
+        u = np.abs(depth) / depth_max
+        theta = np.stack([np.exp(np.interp(u, self.grid, row)) for row in log_grid], -1)
+        return torch.as_tensor(theta, dtype=torch.float32)
+
+    def predict(self, ctx, part):
+        out = []
+        for profile in part.profiles:
+            theta = self._theta(ctx, part, profile.depth, np.abs(profile.depth).max())[None]
+            depth = torch.as_tensor(profile.depth, dtype=torch.float32)[None]
+            out.append(ctx.model.dynamics(theta, depth, ctx.dt)[0].numpy())
+        return out
+
+    def static(self, ctx, part, depth_max, depth):
+        p = torch.as_tensor(depth, dtype=torch.float32)[None]
+        static = ctx.model.dynamics.static_force(self._theta(ctx, part, depth, depth_max)[None], p)
+        return None if static is None else static[0].numpy()
+
+
+class BlackBox(Method):
+    """An MLP f(z, p_z) -> F trained on every sample of the training trials (MSE); no dynamics, no physics."""
+
+    name = "blackbox"
+
+    def fit(self, ctx):
+        force_scale, depth_scale = ctx.scales
+        self.scales = (force_scale, depth_scale)
+        latent_dim = ctx.latents.shape[1]
+        self.net = nn.Sequential(nn.Linear(latent_dim + 1, 128), nn.ReLU(), nn.Linear(128, 128), nn.ReLU(),
+                                 nn.Linear(128, 128), nn.ReLU(), nn.Linear(128, 1))
+        z = torch.cat([ctx.latent(part).expand(len(p.depth), -1) for part in ctx.train for p in part.profiles])
+        depth = torch.cat([torch.as_tensor(p.depth, dtype=torch.float32) for part in ctx.train
+                           for p in part.profiles])
+        force = torch.cat([torch.as_tensor(p.force, dtype=torch.float32) for part in ctx.train
+                           for p in part.profiles])
+        inputs = torch.cat([z, (depth / depth_scale)[:, None]], 1)
+        generator = torch.Generator().manual_seed(ctx.seed)
+        optimiser = torch.optim.Adam(self.net.parameters(), lr=1e-3)
+        with torch.enable_grad():
+            for _ in range(ctx.settings.get("blackbox_steps", 2000)):
+                rows = torch.randint(len(inputs), (1024,), generator=generator)
+                optimiser.zero_grad()
+                loss = (self.net(inputs[rows])[:, 0] - force[rows] / force_scale).pow(2).mean()
+                loss.backward()
+                optimiser.step()
+        self.net.eval().requires_grad_(False)
+
+    def _force(self, ctx: EvalContext, part: PartData, depth: np.ndarray) -> np.ndarray:
+        p = torch.as_tensor(depth, dtype=torch.float32)
+        inputs = torch.cat([ctx.latent(part).expand(len(p), -1), (p / self.scales[1])[:, None]], 1)
+        return self.net(inputs)[:, 0].numpy() * self.scales[0]
+
+    def predict(self, ctx, part):
+        return [self._force(ctx, part, p.depth) for p in part.profiles]
+
+    def static(self, ctx, part, depth_max, depth):
+        return self._force(ctx, part, depth)
+
+
+class MeanProfile(Method):
+    """The mean force of all training samples in 0.1 mm depth bins, looked up at the test depth."""
+
+    name = "mean"
+    bin_mm = 0.1
+
+    def fit(self, ctx):
+        depth = np.concatenate([p.depth for part in ctx.train for p in part.profiles])
+        force = np.concatenate([p.force for part in ctx.train for p in part.profiles])
+        edges = np.arange(0.0, depth.max() + self.bin_mm, self.bin_mm)
+        which = np.clip(np.digitize(depth, edges) - 1, 0, len(edges) - 2)
+        counts = np.bincount(which, minlength=len(edges) - 1)
+        sums = np.bincount(which, weights=force, minlength=len(edges) - 1)
+        centres = 0.5 * (edges[:-1] + edges[1:])
+        filled = counts > 0
+        self.depth, self.force = centres[filled], sums[filled] / counts[filled]
+
+    def predict(self, ctx, part):
+        return [np.interp(p.depth, self.depth, self.force) for p in part.profiles]
+
+    def static(self, ctx, part, depth_max, depth):
+        return np.interp(depth, self.depth, self.force)
+
+
+METHODS: dict[str, type[Method]] = {m.name: m for m in (PIPE, Oracle, Nearest, GPR, BlackBox, MeanProfile)}
+BASELINES = [name for name in METHODS if name != "pipe"]

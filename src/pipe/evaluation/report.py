@@ -1,0 +1,166 @@
+"""Results of a domain run as JSON, Markdown tables and plots (written to <run>/report/)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from pipe.evaluation.evaluate import MethodResult  # noqa: E402
+
+COLUMNS = [("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("nrmse_fit_F", "NRMSE fit(F) [%]"),
+           ("rms", "rms [N]"), ("rms_rel", "rms_rel"), ("static_rms", "static rms [N]")]
+
+
+def results_document(domain: str, counts: dict[str, int], results: dict[str, MethodResult],
+                     seconds: dict[str, float]) -> dict:
+    return {"domain": domain, "parts": counts, "seconds": seconds,
+            "methods": {name: {"domain": r.domain, "per_part": r.per_part} for name, r in results.items()}}
+
+
+def _cell(metrics: dict[str, float], key: str) -> str:
+    return f"{metrics[key]:.2f}" if key in metrics else "-"
+
+
+def results_markdown(doc: dict) -> str:
+    """Table II of the paper (domain, part counts, rms, rms_rel) with FIT and one row per method,
+    then the same metrics per test part."""
+    counts, methods = doc["parts"], doc["methods"]
+    head = "| domain | method | # train | # val | # test | " + " | ".join(t for _, t in COLUMNS) + " |"
+    rule = "|" + " --- |" * (5 + len(COLUMNS))
+    lines = [f"### Domain {doc['domain']}", "", head, rule]
+    for name, m in methods.items():
+        lines.append(f"| {doc['domain']} | {name} | {counts['train']} | {counts['val']} | {counts['test']} | "
+                     + " | ".join(_cell(m["domain"], k) for k, _ in COLUMNS) + " |")
+    lines += ["", "| test part | method | " + " | ".join(t for _, t in COLUMNS) + " |",
+              "|" + " --- |" * (2 + len(COLUMNS))]
+    for part in next(iter(methods.values()))["per_part"]:
+        for name, m in methods.items():
+            lines.append(f"| {part} | {name} | " + " | ".join(_cell(m["per_part"][part], k) for k, _ in COLUMNS)
+                         + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _common(arrays: list[np.ndarray]) -> np.ndarray:
+    n = min(len(a) for a in arrays)
+    return np.stack([a[:n] for a in arrays])
+
+
+def plot_forces(parts, results: dict[str, MethodResult], dt: float, path: Path) -> None:
+    """Measured vs predicted force per test part: mean over trials with the min-max spread (up to the
+    shortest trial), PIPE's prediction likewise, and the baselines' means."""
+    fig, axes = plt.subplots(1, len(parts), figsize=(5 * len(parts), 3.6), squeeze=False)
+    for ax, part in zip(axes[0], parts):
+        measured = _common([p.force for p in part.profiles])
+        t = np.arange(measured.shape[1]) * dt
+        ax.fill_between(t, measured.min(0), measured.max(0), color="tab:blue", alpha=0.25, lw=0)
+        ax.plot(t, measured.mean(0), color="tab:blue", label="measured")
+        for name, result in results.items():
+            pred = _common(result.forces[part.name])[:, : len(t)]
+            if name == "pipe":
+                ax.fill_between(t, pred.min(0), pred.max(0), color="k", alpha=0.15, lw=0)
+                ax.plot(t, pred.mean(0), color="k", label="PIPE")
+            else:
+                ax.plot(t, pred.mean(0), lw=0.8, ls="--", label=name)
+        ax.set_title(f"{part.name}: FIT(F) {results['pipe'].per_part[part.name]['fit_F']:.1f} %"
+                     if "pipe" in results else part.name)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("F_z [N]")
+    axes[0, -1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+@torch.no_grad()
+def plot_theta(model, parts, latents: torch.Tensor, index: dict[str, int], path: Path) -> None:
+    """Theta(p_z) of each test part over its depth range, with the local models where the head has them."""
+    names = model.dynamics.parameter_names
+    fig, axes = plt.subplots(len(parts), len(names), figsize=(3.4 * len(names), 2.8 * len(parts)), squeeze=False)
+    for row, part in zip(axes, parts):
+        depth_max = float(np.mean([np.abs(p.depth).max() for p in part.profiles]))
+        depth = torch.linspace(0, depth_max, 300)[None]
+        profile = model.profile(latents[index[part.name]][None], torch.tensor([depth_max]))
+        theta = profile(depth)[0].numpy()
+        local = getattr(profile.raw, "weights", None)
+        for j, ax in enumerate(row):
+            if local is not None:  # each local model's contribution a_i Psi_i / sum Psi
+                parts_j = (local(depth)[0, :, j] * profile.raw.amplitude[0, j] * profile.scale[j]).numpy()
+                ax.plot(depth[0], parts_j, lw=0.6, alpha=0.6)
+            ax.plot(depth[0], theta[:, j], color="k", lw=1.5)
+            ax.set_title(f"{part.name}: {names[j]}", fontsize=9)
+            ax.set_xlabel("p_z [mm]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+@torch.no_grad()
+def plot_clouds(encoder, parts, path: Path) -> None:
+    """Input point cloud and its reconstruction from the mean latent code, per test part."""
+    fig = plt.figure(figsize=(4.2 * len(parts), 7))
+    encoder.eval()
+    for k, part in enumerate(parts):
+        cloud = torch.from_numpy(part.cloud.points)[None]
+        recon = encoder.decode(encoder.encode(cloud)[0])[0].numpy()
+        for row, (points, title) in enumerate(((part.cloud.points, "input"), (recon, "reconstruction"))):
+            ax = fig.add_subplot(2, len(parts), row * len(parts) + k + 1, projection="3d")
+            ax.scatter(points[:, 0], points[:, 1], points[:, 2], s=0.6)
+            ax.set_title(f"{part.name}: {title}", fontsize=9)
+            ax.set_box_aspect(np.ptp(part.cloud.points, axis=0) + 1e-6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def read_epoch_metrics(csv_path: Path) -> dict[str, list[tuple[int, float]]]:
+    """Per metric name, (epoch, value) pairs from a Lightning CSVLogger file."""
+    series: dict[str, list[tuple[int, float]]] = {}
+    if not csv_path.is_file():
+        return series
+    with csv_path.open() as handle:
+        for row in csv.DictReader(handle):
+            for key, value in row.items():
+                if key not in ("epoch", "step") and value not in ("", None):
+                    series.setdefault(key, []).append((int(row["epoch"]), float(value)))
+    return series
+
+
+def plot_losses(run_dir: Path, path: Path) -> None:
+    """Loss curves of both stages from the CSV logs (paper, Fig. "losses")."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for ax, stage, keys in ((axes[0], "vae", ("vae/train_chamfer", "vae/val_chamfer", "vae/train_kl")),
+                            (axes[1], "head", ("head/train_loss", "head/val_loss"))):
+        series = read_epoch_metrics(run_dir / "logs" / stage / "metrics.csv")
+        for key in keys:
+            if key in series:
+                epochs, values = zip(*series[key])
+                ax.plot(epochs, values, label=key)
+        ax.set_yscale("log")
+        ax.set_xlabel("epoch")
+        ax.set_title("stage 1: VAE" if stage == "vae" else "stage 2: head (MSE, N^2)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_report(run, out: Path) -> list[Path]:
+    """results.json, results.md and the four figures of a finished run."""
+    out.mkdir(parents=True, exist_ok=True)
+    doc = results_document(run.domain_name, run.counts, run.results, run.seconds)
+    files = {"results.json": json.dumps(doc, indent=2) + "\n", "results.md": results_markdown(doc)}
+    for name, text in files.items():
+        (out / name).write_text(text)
+    plot_forces(run.test, run.results, run.dt, out / "forces.png")
+    plot_theta(run.model, run.test, run.latents, run.index, out / "theta.png")
+    plot_clouds(run.model.encoder, run.test, out / "point_clouds.png")
+    plot_losses(run.run_dir, out / "losses.png")
+    return sorted(out.iterdir())

@@ -1,0 +1,139 @@
+"""MLflow tracking: one run per domain training, a parent run per Hydra multirun.
+
+The default store is the SQLite file `mlflow.db` at the project root (what `mlflow ui` opens there with no
+flags), with artifacts in `mlartifacts/` beside it; `MLFLOW_TRACKING_URI` or `mlflow.tracking_uri`
+override it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import mlflow
+import mlflow.pytorch
+import torch
+from hydra.experimental.callback import Callback
+from lightning.pytorch.loggers import MLFlowLogger
+from mlflow.tracking import MlflowClient
+from omegaconf import DictConfig, OmegaConf
+
+PARENT_RUN_ENV = "PIPE_MLFLOW_PARENT_RUN_ID"
+
+
+def tracking_uri(configured: str | None, root: Path) -> str:
+    return os.environ.get("MLFLOW_TRACKING_URI") or configured or f"sqlite:///{root / 'mlflow.db'}"
+
+
+def artifact_location(uri: str) -> str | None:
+    """Artifacts of a local SQLite store live beside it, wherever the command was launched."""
+    if uri.startswith("sqlite:///"):
+        return (Path(uri.removeprefix("sqlite:///")).parent / "mlartifacts").resolve().as_uri()
+    return None
+
+
+def use_experiment(cfg: DictConfig) -> str:
+    """Point MLflow at the configured store and experiment (created on first use); its id."""
+    uri = tracking_uri(cfg.mlflow.tracking_uri, Path(cfg.paths.root))
+    mlflow.set_tracking_uri(uri)
+    experiment = mlflow.get_experiment_by_name(cfg.mlflow.experiment)
+    if experiment is not None:
+        return experiment.experiment_id
+    return mlflow.create_experiment(cfg.mlflow.experiment, artifact_location=artifact_location(uri))
+
+
+def flatten(tree: Any, prefix: str = "") -> dict[str, str]:
+    """A nested config as dotted keys with string values, as MLflow params."""
+    if isinstance(tree, dict):
+        out: dict[str, str] = {}
+        for key, value in tree.items():
+            out |= flatten(value, f"{prefix}{key}.")
+        return out
+    return {prefix.rstrip("."): str(tree)}
+
+
+def dataset_version(root: Path) -> str:
+    """Content hash of a dataset folder: every file's path and bytes, in sorted order."""
+    digest = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        digest.update(path.relative_to(root).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def git_commit(root: Path) -> str:
+    """The checked-out commit, with "+dirty" when tracked files have uncommitted changes."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True).stdout.strip()
+
+    commit = git("rev-parse", "HEAD") or "unknown"
+    return commit + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
+class StageLogger(MLFlowLogger):
+    """Lightning's MLflow logger writing a stage's epochs into the domain's run without ending it:
+    the run spans both stages and the evaluation, and `tracked_run` sets its final status."""
+
+    def finalize(self, status: str = "success") -> None:
+        pass
+
+
+@contextmanager
+def tracked_run(cfg: DictConfig, run_name: str, tags: dict[str, str]) -> Iterator[mlflow.ActiveRun]:
+    """An MLflow run for one domain training: params and tags logged; FAILED if anything raises, KILLED
+    on Ctrl-C, FINISHED otherwise (never left RUNNING). Inside a multirun it is a child of the sweep's run."""
+    experiment_id = use_experiment(cfg)
+    parent = os.environ.get(PARENT_RUN_ENV)
+    run = mlflow.start_run(experiment_id=experiment_id, run_name=run_name, parent_run_id=parent, tags=tags)
+    try:
+        params = flatten(OmegaConf.to_container(cfg, resolve=True))
+        items = list(params.items())
+        for start in range(0, len(items), 100):   # MLflow takes at most 100 params per call
+            mlflow.log_params(dict(items[start:start + 100]))
+        yield run
+    except KeyboardInterrupt:
+        mlflow.end_run("KILLED")
+        raise
+    except BaseException:
+        mlflow.end_run("FAILED")
+        if parent:
+            MlflowClient().set_terminated(parent, "FAILED")
+        raise
+    mlflow.end_run("FINISHED")
+
+
+class MLflowSweepCallback(Callback):
+    """Hydra callback: a multirun gets a parent MLflow run; each job's run becomes its child."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        experiment_id = use_experiment(config)
+        client = MlflowClient()
+        run = client.create_run(experiment_id, run_name=f"sweep {config.hydra.sweep.dir.rsplit('/', 1)[-1]}",
+                                tags={"sweep_dir": str(config.hydra.sweep.dir)})
+        os.environ[PARENT_RUN_ENV] = run.info.run_id
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        parent = os.environ.pop(PARENT_RUN_ENV, None)
+        if parent and MlflowClient().get_run(parent).info.status == "RUNNING":   # no child failed
+            MlflowClient().set_terminated(parent, "FINISHED")
+
+
+def log_outputs(run, cfg: DictConfig, metadata: dict[str, Any]) -> None:
+    """Final metrics of PIPE and every baseline, the run's files and the trained model."""
+    for method, result in run.results.items():
+        mlflow.log_metrics({f"test/{method}/{k}": v for k, v in result.domain.items()})
+        for part, metrics in result.per_part.items():
+            mlflow.log_metrics({f"test/{method}/{part}/{k}": v for k, v in metrics.items()})
+    mlflow.log_metrics({f"time/{stage}_s": seconds for stage, seconds in run.seconds.items()})
+    mlflow.log_artifact(str(run.run_dir / "config.yaml"))
+    mlflow.log_artifact(str(run.run_dir / "metrics.json"))
+    mlflow.log_artifacts(str(run.run_dir / "report"), "report")
+    mlflow.pytorch.log_model(run.model, name="model", metadata=metadata, serialization_format="pickle",
+                             code_paths=[str(Path(cfg.paths.root) / "plugins")],
+                             pip_requirements=[f"torch=={torch.__version__.split('+')[0]}"],
+                             registered_model_name=cfg.mlflow.registered_model or None)
