@@ -41,3 +41,32 @@ def real_meshes() -> list[Path]:
             pytest.fail(f"the real meshes are missing at {REAL_MESHES} (set PIPE_REAL_MESHES)")
         pytest.skip(f"real meshes not found at {REAL_MESHES}; set PIPE_REAL_MESHES to run these tests")
     return sorted(p for p in REAL_MESHES.iterdir() if p.suffix.lower() in (".stl", ".obj"))
+
+
+TINY_DOMAIN = ["domain.name=tiny", "domain.train=[dsub9,dsub15]", "domain.val=[vga]", "domain.test=[dsub26]"]
+
+
+@pytest.fixture(scope="session")
+def tiny_data(tmp_path_factory) -> Path:
+    """Four D-subs: enough for a train / val / test split that trains in seconds."""
+    return generate_dataset(tmp_path_factory.mktemp("tiny") / "data", parts=["dsub9", "dsub15", "vga", "dsub26"])
+
+
+def compose_config(overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+
+    os.environ.setdefault("PROJECT_ROOT", str(ROOT))
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=overrides)
+
+
+def smoke_config(data: Path, out: Path, *extra: str):
+    return compose_config(["experiment=smoke", f"data.dir={data}", f"paths.output_dir={out}", *TINY_DOMAIN, *extra])
+
+
+@pytest.fixture(scope="session")
+def trained_run(tiny_data, tmp_path_factory):
+    """One smoke training of the tiny domain, tracked in the session's MLflow store."""
+    from pipe.training.run import train_domain
+
+    return train_domain(smoke_config(tiny_data, tmp_path_factory.mktemp("run")))

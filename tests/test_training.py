@@ -13,28 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-
-from pipe.synthetic import generate_dataset
 from pipe.training.run import build_components, train_domain
 
-ROOT = Path(__file__).resolve().parents[1]
-TINY_DOMAIN = ["domain.name=tiny", "domain.train=[dsub9,dsub15]", "domain.val=[vga]", "domain.test=[dsub26]"]
-
-
-@pytest.fixture(scope="module")
-def tiny_data(tmp_path_factory) -> Path:
-    return generate_dataset(tmp_path_factory.mktemp("tiny") / "data", parts=["dsub9", "dsub15", "vga", "dsub26"])
-
-
-def config(overrides: list[str]):
-    os.environ.setdefault("PROJECT_ROOT", str(ROOT))
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose(config_name="config", overrides=overrides)
-
-
-def smoke_config(data: Path, out: Path, *extra: str):
-    return config(["experiment=smoke", f"data.dir={data}", f"paths.output_dir={out}", *TINY_DOMAIN, *extra])
+from conftest import ROOT, TINY_DOMAIN, smoke_config
+from conftest import compose_config as config
 
 
 @pytest.mark.parametrize("encoder", ["pointnet", "dgcnn"])

@@ -45,6 +45,7 @@ class Method(ABC):
         return None
 
 
+@torch.no_grad()
 def _static_from_head(ctx: EvalContext, head: ParameterHead, z: torch.Tensor, depth_max: float,
                       depth: np.ndarray) -> np.ndarray | None:
     p = torch.as_tensor(depth, dtype=torch.float32)[None]
@@ -53,6 +54,7 @@ def _static_from_head(ctx: EvalContext, head: ParameterHead, z: torch.Tensor, de
     return None if static is None else static[0].numpy()
 
 
+@torch.no_grad()
 def _head_forces(ctx: EvalContext, head: ParameterHead, z: torch.Tensor, part: PartData) -> list[np.ndarray]:
     batch = ctx.batch(part)
     zs = z.expand(len(batch.part), -1)
@@ -143,6 +145,7 @@ class GPR(Method):
         theta = np.stack([np.exp(np.interp(u, self.grid, row)) for row in log_grid], -1)
         return torch.as_tensor(theta, dtype=torch.float32)
 
+    @torch.no_grad()
     def predict(self, ctx, part):
         out = []
         for profile in part.profiles:
@@ -151,6 +154,7 @@ class GPR(Method):
             out.append(ctx.model.dynamics(theta, depth, ctx.dt)[0].numpy())
         return out
 
+    @torch.no_grad()
     def static(self, ctx, part, depth_max, depth):
         p = torch.as_tensor(depth, dtype=torch.float32)[None]
         static = ctx.model.dynamics.static_force(self._theta(ctx, part, depth, depth_max)[None], p)
@@ -185,6 +189,7 @@ class BlackBox(Method):
                 optimiser.step()
         self.net.eval().requires_grad_(False)
 
+    @torch.no_grad()
     def _force(self, ctx: EvalContext, part: PartData, depth: np.ndarray) -> np.ndarray:
         p = torch.as_tensor(depth, dtype=torch.float32)
         inputs = torch.cat([ctx.latent(part).expand(len(p), -1), (p / self.scales[1])[:, None]], 1)

@@ -1,0 +1,110 @@
+"""Each evaluated method on a tiny problem whose answer is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pipe.data.dataset import StaticCurve
+from pipe.data.prepare import PartData
+from pipe.data.preprocess import PointCloud, Profile
+from pipe.errors import PipeError
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import evaluate_methods
+from pipe.evaluation.methods import METHODS, identify
+from pipe.model.pipe_model import PIPEModel
+from plugins.encoder.pointnet import PointNetVAE
+from plugins.head.gaussian import GaussianHead
+from plugins.model.mds2 import MDS2
+
+DT = 0.01
+TIME = np.arange(0, 2.0, DT)
+DEPTH = 6.0 * np.clip(TIME / 1.4, 0, 1)
+
+
+def part(name: str, gain: float, trials: int = 3) -> PartData:
+    """A part whose force is simulated by mds2 itself with constant parameters and static gain `gain`."""
+    theta = torch.tensor([4e-4, 0.04, 1.0, gain]).expand(1, len(TIME), 4)
+    force = MDS2()(theta, torch.tensor(DEPTH, dtype=torch.float32)[None], DT)[0].numpy()
+    cloud = PointCloud(np.zeros((16, 3), np.float32), np.zeros(3), "volume")
+    static = StaticCurve(DEPTH[:: 10].copy(), gain * DEPTH[:: 10])
+    return PartData(name, cloud, [Profile(TIME, DEPTH, force)] * trials, [static] * trials)
+
+
+@pytest.fixture
+def ctx():
+    torch.manual_seed(0)
+    train = [part("a", 1.0), part("b", 3.0)]
+    test = part("t", 2.0)
+    model = PIPEModel(PointNetVAE(num_points=16), GaussianHead(32, 4), MDS2(), force_scale=10.0, depth_scale=6.0)
+    latents = torch.tensor([[0.0] * 32, [1.0] * 32, [0.45] * 32])
+    context = EvalContext(model, latents, {"a": 0, "b": 1, "t": 2}, train, [], DT, seed=0,
+                          settings={"oracle_steps": 400, "oracle_lr": 1e-2, "blackbox_steps": 1500})
+    return context, test
+
+
+def test_oracle_recovers_the_simulating_parameters(ctx):
+    context, test = ctx
+    oracle = METHODS["oracle"]()
+    forces = oracle.predict(context, test)
+    assert np.sqrt(np.mean((forces[0] - test.profiles[0].force) ** 2)) < 0.02 * test.profiles[0].force.max()
+    static = oracle.static(context, test, 6.0, np.array([2.0, 4.0, 6.0]))
+    np.testing.assert_allclose(static, [4.0, 8.0, 12.0], rtol=0.03)   # the static gain b0 / a2 = 2
+
+
+def test_nearest_uses_the_closest_training_part(ctx):
+    context, test = ctx
+    got = METHODS["nearest"]().predict(context, test)[0]      # latent 0.45 is nearer to a (0) than to b (1)
+    batch = context.batch(test)
+    with torch.no_grad():
+        expected = context.model(context.latents[[0]], batch.depth[:1], DT)[0].numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+
+
+def test_gpr_reproduces_a_training_part_at_its_own_latent(ctx):
+    context, _ = ctx
+    gpr = METHODS["gpr"]()
+    gpr.fit(context)
+    train_a = context.train[0]
+    head = identify(context, train_a)
+    depth = np.array([1.5, 3.0, 4.5, 6.0])
+    theta_gpr = gpr._theta(context, train_a, depth, 6.0)
+    theta_id = head(context.latent(train_a)[None], torch.tensor([6.0]))(
+        torch.tensor(depth, dtype=torch.float32)[None])[0] * context.model.theta_scale
+    np.testing.assert_allclose(theta_gpr.numpy(), theta_id.numpy(), rtol=0.05)
+
+
+def test_blackbox_learns_a_static_map(ctx):
+    context, test = ctx
+    blackbox = METHODS["blackbox"]()
+    blackbox.fit(context)
+    a = context.train[0]
+    static = blackbox.static(context, a, 6.0, np.array([2.0, 4.0, 6.0]))
+    np.testing.assert_allclose(static, [2.0, 4.0, 6.0], atol=0.6)     # part a: F = 1 N/mm * p (static)
+
+
+def test_mean_is_the_average_training_force_over_depth(ctx):
+    context, test = ctx
+    mean = METHODS["mean"]()
+    mean.fit(context)
+    expected = 0.5 * (context.train[0].profiles[0].force + context.train[1].profiles[0].force)
+    moving = DEPTH < 5.9                   # the hold at 6 mm collects every sample of both parts' holds
+    got = mean.predict(context, test)[0]
+    assert np.abs(got - expected)[moving].max() < 0.15 * expected.max()
+
+
+def test_evaluation_scores_every_method_and_the_static_curve(ctx):
+    context, test = ctx
+    context.settings |= {"oracle_steps": 50, "blackbox_steps": 50}
+    results = evaluate_methods(context, [test], list(METHODS))
+    assert set(results) == set(METHODS)
+    for result in results.values():
+        assert {"fit_F", "fit_dF", "rms", "rms_rel", "static_rms"} <= set(result.domain)
+    assert results["oracle"].domain["rms"] < results["mean"].domain["rms"]
+
+
+def test_unknown_baseline_is_refused(ctx):
+    context, test = ctx
+    with pytest.raises(PipeError, match="unknown method"):
+        evaluate_methods(context, [test], ["pipe", "kriging"])

@@ -1,0 +1,43 @@
+"""The paper's metrics against hand-computed values."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipe.metrics import fit_percent, force_metrics, mean_metrics, nrmse_fit_percent, rms, rms_rel
+
+X = np.array([1.0, 2.0, 3.0, 4.0])
+X_HAT = np.array([1.0, 2.0, 3.0, 5.0])   # error 1 in the last sample; ||x - mean||^2 = 5
+
+
+def test_fit_is_one_minus_nmse_with_squared_norms():
+    assert fit_percent(X, X_HAT) == pytest.approx(100 * (1 - 1 / 5))          # 80
+    assert fit_percent(X, X) == 100.0
+    assert fit_percent(X, np.full(4, X.mean())) == pytest.approx(0.0)        # the mean predicts nothing
+
+
+def test_matlab_compare_fit_uses_plain_norms():
+    assert nrmse_fit_percent(X, X_HAT) == pytest.approx(100 * (1 - 1 / np.sqrt(5)))   # 55.28
+    assert nrmse_fit_percent(X, X_HAT) < fit_percent(X, X_HAT)
+
+
+def test_rms_and_rms_rel():
+    assert rms(X, X_HAT) == pytest.approx(0.5)                               # sqrt(1 / 4)
+    assert rms_rel(X, X_HAT) == pytest.approx(np.sqrt((1 / 4) ** 2 / 4))     # error / max|F| = 1/4, once
+    assert rms_rel(-X, -X_HAT) == pytest.approx(rms_rel(X, X_HAT))
+
+
+def test_fit_of_the_derivative_uses_central_differences():
+    dt = 0.5
+    force = np.array([0.0, 1.0, 4.0, 9.0, 16.0])          # gradient: 2, 4, 8, 12, 14
+    predicted = np.array([0.0, 1.0, 4.0, 9.0, 14.0])      # gradient: 2, 4, 8, 10, 10
+    metrics = force_metrics(force, predicted, dt)
+    rate = np.array([2.0, 4.0, 8.0, 12.0, 14.0])
+    expected = 100 * (1 - (0 + 0 + 0 + 4 + 16) / np.sum((rate - rate.mean()) ** 2))
+    assert metrics["fit_dF"] == pytest.approx(expected)
+    assert metrics["fit_F"] == pytest.approx(fit_percent(force, predicted))
+
+
+def test_mean_metrics_average_each_key():
+    assert mean_metrics([{"a": 1.0, "b": 4.0}, {"a": 3.0, "b": 0.0}]) == {"a": 2.0, "b": 2.0}

@@ -1,0 +1,69 @@
+"""predict.py: a new part's Theta(p_z) and force from its mesh and a model in MLflow."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+
+
+def run_predict(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "predict.py"), *args], capture_output=True, text=True,
+                          timeout=300, cwd="/", env=os.environ)
+
+
+def test_predict_on_real_meshes_in_both_units(trained_run, real_meshes, tmp_path):
+    for name in ("labit_positioning_pin_d5_20.stl", "factory_round_peg_8mm_tight.obj"):
+        mesh = next(p for p in real_meshes if p.name == name)
+        out = tmp_path / name
+        result = run_predict(f"mesh={mesh}", f"run={trained_run.mlflow_run_id}", f"hydra.run.dir={out}")
+        assert result.returncode == 0, result.stderr[-3000:]
+        assert ("read in mm" if name.endswith(".stl") else "read in m ") in result.stdout
+        theta = np.genfromtxt(out / "theta.csv", delimiter=",", names=True)
+        assert theta.dtype.names == ("p_z", "a0", "a1", "a2", "b0")
+        assert np.all(np.isfinite(theta.view((float, 5)))) and np.all(theta["a2"] > 0)
+        force = np.genfromtxt(out / "force.csv", delimiter=",", names=True)
+        assert force["p_z"].max() == pytest.approx(json.loads((out / "theta.json").read_text())["depth_mm"][-1])
+        assert np.all(np.isfinite(force["F_z"])) and (out / "prediction.png").is_file()
+        doc = json.loads((out / "theta.json").read_text())
+        assert len(doc["local_models"]["b0"]["centre_mm"]) == 10
+
+
+def test_predict_follows_a_given_trajectory(trained_run, real_meshes, tmp_path):
+    trajectory = tmp_path / "traj.csv"
+    t = np.arange(0, 2.0, 0.01)
+    np.savetxt(trajectory, np.column_stack([t, 3 * np.clip(t, 0, 1)]), delimiter=",", header="t,p_z", comments="")
+    mesh = next(p for p in real_meshes if p.name == "labit_positioning_pin_d5_20.stl")
+    result = run_predict(f"mesh={mesh}", "run=models:/pipe-tiny/latest", f"trajectory={trajectory}",
+                         f"hydra.run.dir={tmp_path / 'out'}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    force = np.genfromtxt(tmp_path / "out" / "force.csv", delimiter=",", names=True)
+    assert force["p_z"].max() == pytest.approx(3.0) and force["t"][-1] == pytest.approx(1.98, abs=0.03)
+
+
+def test_predict_errors_are_clear(trained_run, real_meshes, tmp_path):
+    mesh = next(p for p in real_meshes if p.name == "labit_nut_tube.stl")
+    cases = [
+        ([f"mesh={tmp_path / 'missing.stl'}", f"run={trained_run.mlflow_run_id}"], "mesh file does not exist"),
+        ([f"mesh={mesh}", "run=0123456789abcdef"], "no trained model at runs:/0123456789abcdef/model"),
+    ]
+    micrometres = tmp_path / "part_um.stl"
+    import trimesh
+    trimesh.load(mesh).apply_scale(1000.0).export(micrometres)   # a part stored in micrometres
+    cases.append(([f"mesh={micrometres}", f"run={trained_run.mlflow_run_id}"], "once read in mm"))
+    for args, message in cases:
+        result = run_predict(*args, f"hydra.run.dir={tmp_path / 'x'}")
+        assert result.returncode == 2, result.stdout
+        assert message in " ".join(result.stderr.split()) and "Traceback" not in result.stderr
+    told = run_predict(f"mesh={micrometres}", "units=micron", f"run={trained_run.mlflow_run_id}",
+                       f"hydra.run.dir={tmp_path / 'y'}")
+    assert told.returncode == 0 and "read in micron" in told.stdout and "warning" not in told.stdout
+    # a unit the user states is trusted, but a size far from the training parts is flagged
+    wrong = run_predict(f"mesh={mesh}", "units=m", f"run={trained_run.mlflow_run_id}", f"hydra.run.dir={tmp_path / 'z'}")
+    assert wrong.returncode == 0 and "warning: the part is 1.848e+04 mm large" in " ".join(wrong.stdout.split())

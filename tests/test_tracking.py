@@ -1,0 +1,85 @@
+"""MLflow: what a domain run records, read back through the client API; FAILED runs; multirun parents."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import mlflow
+import mlflow.pytorch
+import numpy as np
+import pytest
+import torch
+from mlflow.tracking import MlflowClient
+
+from conftest import ROOT, TINY_DOMAIN, smoke_config
+from pipe.tracking import dataset_version, flatten
+from pipe.training import run as run_module
+from pipe.training.run import train_domain
+
+
+def test_a_domain_run_records_params_metrics_tags_artifacts_and_model(trained_run, tiny_data):
+    client = MlflowClient()
+    run = client.get_run(trained_run.mlflow_run_id)
+    assert run.info.status == "FINISHED"
+    params, metrics, tags = run.data.params, run.data.metrics, run.data.tags
+    assert params["stages.vae.epochs"] == "2" and params["domain.name"] == "tiny"
+    assert params["encoder._target_"] == "plugins.encoder.pointnet.PointNetVAE"
+    for method in ("pipe", "oracle", "nearest", "gpr", "blackbox", "mean"):
+        assert f"test/{method}/fit_F" in metrics and f"test/{method}/dsub26/rms" in metrics
+    assert metrics["test/pipe/fit_F"] == pytest.approx(trained_run.pipe.domain["fit_F"])
+    history = client.get_metric_history(run.info.run_id, "vae/train_loss")
+    assert [m.step for m in history] == [0, 1]                       # one value per epoch
+    assert len(client.get_metric_history(run.info.run_id, "head/val_loss")) == 2
+    assert tags["domain"] == "tiny" and tags["encoder"] == "PointNetVAE" and tags["model"] == "MDS2"
+    assert tags["dataset_version"] == dataset_version(tiny_data)
+    assert len(tags["git_commit"].split("+")[0]) == 40
+    artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
+    assert {"config.yaml", "metrics.json", "report"} <= artifacts
+    report = {a.path for a in client.list_artifacts(run.info.run_id, "report")}
+    assert {f"report/{f}" for f in ("results.json", "results.md", "forces.png", "theta.png", "point_clouds.png",
+                                     "losses.png")} <= report
+
+
+@pytest.mark.parametrize("uri", ["runs:/{run_id}/model", "models:/pipe-tiny/latest"])
+def test_the_logged_model_loads_and_predicts_like_the_trained_one(trained_run, uri):
+    model = mlflow.pytorch.load_model(uri.format(run_id=trained_run.mlflow_run_id), map_location="cpu").eval()
+    depth = torch.linspace(0, 8, 300)[None]
+    z = trained_run.latents[:1]
+    with torch.no_grad():
+        expected = trained_run.model.eval()(z, depth, trained_run.dt)
+        np.testing.assert_allclose(model(z, depth, trained_run.dt).numpy(), expected.numpy(), rtol=1e-5)
+
+
+def test_a_crashing_run_ends_failed(tiny_data, tmp_path, monkeypatch):
+    def crash(*args, **kwargs):
+        raise RuntimeError("evaluation exploded")
+
+    monkeypatch.setattr(run_module, "evaluate_methods", crash)
+    before = {r.info.run_id for r in MlflowClient().search_runs([mlflow.get_experiment_by_name("pipe").experiment_id])}
+    with pytest.raises(RuntimeError, match="exploded"):
+        train_domain(smoke_config(tiny_data, tmp_path))
+    experiment = mlflow.get_experiment_by_name("pipe").experiment_id
+    new = [r for r in MlflowClient().search_runs([experiment]) if r.info.run_id not in before]
+    assert [r.info.status for r in new] == ["FAILED"]
+
+
+def test_a_multirun_is_a_parent_run_with_one_child_per_job(tiny_data, tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), "-m", "experiment=smoke", "seed=0,1", f"data.dir={tiny_data}",
+         f"hydra.sweep.dir={tmp_path}", "mlflow.experiment=sweeps", "mlflow.registered_model=null", *TINY_DOMAIN],
+        capture_output=True, text=True, timeout=600, cwd="/", env=os.environ)
+    assert result.returncode == 0, result.stderr[-3000:]
+    experiment = mlflow.get_experiment_by_name("sweeps").experiment_id
+    runs = MlflowClient().search_runs([experiment])
+    parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
+    children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
+    assert len(parents) == 1 and len(children) == 2
+    assert {c.data.tags["mlflow.parentRunId"] for c in children} == {parents[0].info.run_id}
+    assert {r.info.status for r in runs} == {"FINISHED"}
+    assert sorted(c.data.params["seed"] for c in children) == ["0", "1"]
+
+
+def test_flatten_gives_dotted_string_params():
+    assert flatten({"a": {"b": 1, "c": [1, 2]}, "d": None}) == {"a.b": "1", "a.c": "[1, 2]", "d": "None"}
