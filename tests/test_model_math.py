@@ -17,7 +17,6 @@ from plugins.model.mds1 import MDS1
 from plugins.model.mds2 import MDS2
 
 
-
 @pytest.fixture(autouse=True)
 def float64():
     """Reference comparisons in double precision, restored afterwards for the other test modules."""

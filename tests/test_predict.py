@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-
+import trimesh
 from conftest import ROOT
 
 
@@ -54,7 +54,6 @@ def test_predict_errors_are_clear(trained_run, real_meshes, tmp_path):
         ([f"mesh={mesh}", "run=0123456789abcdef"], "no trained model at runs:/0123456789abcdef/model"),
     ]
     micrometres = tmp_path / "part_um.stl"
-    import trimesh
     trimesh.load(mesh).apply_scale(1000.0).export(micrometres)   # a part stored in micrometres
     cases.append(([f"mesh={micrometres}", f"run={trained_run.mlflow_run_id}"], "once read in mm"))
     for args, message in cases:
@@ -65,5 +64,6 @@ def test_predict_errors_are_clear(trained_run, real_meshes, tmp_path):
                        f"hydra.run.dir={tmp_path / 'y'}")
     assert told.returncode == 0 and "read in micron" in told.stdout and "warning" not in told.stdout
     # a unit the user states is trusted, but a size far from the training parts is flagged
-    wrong = run_predict(f"mesh={mesh}", "units=m", f"run={trained_run.mlflow_run_id}", f"hydra.run.dir={tmp_path / 'z'}")
+    wrong = run_predict(f"mesh={mesh}", "units=m", f"run={trained_run.mlflow_run_id}",
+                        f"hydra.run.dir={tmp_path / 'z'}")
     assert wrong.returncode == 0 and "warning: the part is 1.848e+04 mm large" in " ".join(wrong.stdout.split())

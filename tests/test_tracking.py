@@ -11,9 +11,9 @@ import mlflow.pytorch
 import numpy as np
 import pytest
 import torch
+from conftest import ROOT, TINY_DOMAIN, smoke_config
 from mlflow.tracking import MlflowClient
 
-from conftest import ROOT, TINY_DOMAIN, smoke_config
 from pipe.tracking import dataset_version, flatten
 from pipe.training import run as run_module
 from pipe.training.run import train_domain

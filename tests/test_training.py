@@ -8,15 +8,14 @@ import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from pipe.training.run import build_components, train_domain
-
 from conftest import ROOT, TINY_DOMAIN, smoke_config
 from conftest import compose_config as config
+
+from pipe.training.run import build_components, train_domain
 
 
 @pytest.mark.parametrize("encoder", ["pointnet", "dgcnn"])
@@ -44,19 +43,19 @@ def test_paper_values_are_the_defaults():
 @pytest.mark.parametrize("encoder, model", [("pointnet", "mds2"), ("dgcnn", "mds2"), ("pointnet", "mds1")])
 def test_smoke_training_runs_both_stages(tiny_data, tmp_path, encoder, model):
     result = train_domain(smoke_config(tiny_data, tmp_path, f"encoder={encoder}", f"model={model}"))
-    assert set(result.per_part) == {"dsub26"}
-    assert all(np.isfinite(v) for v in result.domain.values())
+    assert set(result.pipe.per_part) == {"dsub26"}
+    assert all(np.isfinite(v) for v in result.pipe.domain.values())
     for stage in ("vae", "head"):
         assert (tmp_path / "checkpoints" / stage / "last.ckpt").is_file()
         assert (tmp_path / "checkpoints" / stage / "best.ckpt").is_file()
     saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert saved["test"]["fit_F"] == pytest.approx(result.domain["fit_F"])
+    assert saved["test"]["fit_F"] == pytest.approx(result.pipe.domain["fit_F"])
 
 
 def test_same_seed_same_metrics(tiny_data, tmp_path):
-    first = train_domain(smoke_config(tiny_data, tmp_path / "a")).domain
-    second = train_domain(smoke_config(tiny_data, tmp_path / "b")).domain
-    assert first == second
+    runs = [train_domain(smoke_config(tiny_data, tmp_path / name)) for name in ("a", "b")]
+    first, second = ({name: r.domain for name, r in run.results.items()} for run in runs)
+    assert first == second and set(first) == {"pipe", "oracle", "nearest", "gpr", "blackbox", "mean"}
 
 
 def test_a_run_resumes_from_its_last_checkpoints(tiny_data, tmp_path):
@@ -161,7 +160,8 @@ def test_the_readme_plugin_example_trains(tiny_data, tmp_path):
 
 
 @pytest.mark.parametrize("overrides, message", [
-    (["encoder._target_=torch.nn.Identity"], "the encoder plugin torch.nn.Identity is not a pipe.model.vae.PointCloudVAE"),
+    (["encoder._target_=torch.nn.Identity"],
+     "the encoder plugin torch.nn.Identity is not a pipe.model.vae.PointCloudVAE"),
     (["+head.colour=red"], "the head plugin plugins.head.gaussian.GaussianHead could not be built: TypeError"),
 ])
 def test_a_broken_plugin_config_is_refused_clearly(tiny_data, tmp_path, overrides, message):

@@ -146,7 +146,8 @@ def plot_losses(run_dir: Path, path: Path) -> None:
         ax.set_yscale("log")
         ax.set_xlabel("epoch")
         ax.set_title("stage 1: VAE" if stage == "vae" else "stage 2: head (MSE, N^2)")
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -54,12 +54,12 @@ def simulate(command: np.ndarray, tables: ContactTables, decimation: int) -> tup
     k = GRIP_STIFFNESS * 1e3                                   # N/m
     c = 2 * GRIP_DAMPING_RATIO * np.sqrt(k * PART_MASS)        # N s/m
     to_accel = 1e3 / PART_MASS                                 # N -> mm/s^2
-    p = np.zeros(n_trials); v = np.zeros(n_trials)             # TCP [mm, mm/s]
-    x = np.zeros(n_trials); u = np.zeros(n_trials)             # part
+    p, v = np.zeros(n_trials), np.zeros(n_trials)              # TCP [mm, mm/s]
+    x, u = np.zeros(n_trials), np.zeros(n_trials)              # part
     f = np.zeros(n_trials)                                     # Dahl friction [N]
-    y = np.zeros(n_trials); yd = np.zeros(n_trials)            # sensor reading and its rate
+    y, yd = np.zeros(n_trials), np.zeros(n_trials)             # sensor reading and its rate
     n_out = (n_steps - 1) // decimation + 1
-    depth = np.empty((n_trials, n_out)); force = np.empty((n_trials, n_out))
+    depth, force = np.empty((n_trials, n_out)), np.empty((n_trials, n_out))
     for step in range(n_steps):
         if step % decimation == 0:
             depth[:, step // decimation] = p

@@ -26,9 +26,9 @@ from pipe.evaluation.report import write_report
 from pipe.model.interfaces import DynamicModel, ParameterHead
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
+from pipe.tracking import StageLogger, dataset_version, git_commit, log_outputs, tracked_run
 from pipe.training.batches import cloud_loader, trial_loader
 from pipe.training.stages import HeadStage, VAEStage
-from pipe.tracking import StageLogger, dataset_version, git_commit, log_outputs, tracked_run
 from pipe.training.trainer import make_trainer
 
 log = logging.getLogger(__name__)
