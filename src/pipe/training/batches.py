@@ -19,15 +19,9 @@ class TrialBatch:  # not frozen: Lightning moves its tensors to the device in pl
     mask: torch.Tensor     # (B, T) True on real samples
 
 
-class CloudDataset(Dataset):
-    def __init__(self, parts: list[PartData]) -> None:
-        self.clouds = torch.from_numpy(np.stack([p.cloud.points for p in parts])).float()
-
-    def __len__(self) -> int:
-        return len(self.clouds)
-
-    def __getitem__(self, i: int) -> torch.Tensor:
-        return self.clouds[i]
+def stack_clouds(parts: list[PartData]) -> torch.Tensor:
+    """The parts' point clouds as one (parts, n, 3) tensor in mm."""
+    return torch.from_numpy(np.stack([p.cloud.points for p in parts])).float()
 
 
 class TrialDataset(Dataset):
@@ -55,7 +49,7 @@ def collate_trials(items: list[tuple[int, np.ndarray, np.ndarray]]) -> TrialBatc
 
 
 def cloud_loader(parts: list[PartData], batch_size: int, shuffle: bool, seed: int) -> DataLoader:
-    return DataLoader(CloudDataset(parts), batch_size=batch_size, shuffle=shuffle,
+    return DataLoader(stack_clouds(parts), batch_size=batch_size, shuffle=shuffle,
                       generator=torch.Generator().manual_seed(seed))
 
 

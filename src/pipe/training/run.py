@@ -27,7 +27,7 @@ from pipe.model.interfaces import DynamicModel, ParameterHead
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 from pipe.tracking import StageLogger, dataset_version, git_commit, log_outputs, tracked_run
-from pipe.training.batches import cloud_loader, trial_loader
+from pipe.training.batches import cloud_loader, stack_clouds, trial_loader
 from pipe.training.stages import HeadStage, VAEStage
 from pipe.training.trainer import make_trainer
 
@@ -141,8 +141,7 @@ def train_and_evaluate(cfg: DictConfig, data: DomainData, encoder: PointCloudVAE
     all_parts = train + val + test
     index = {p.name: i for i, p in enumerate(all_parts)}
     model = PIPEModel(encoder, head, dynamics, *data_scales(train))
-    clouds = torch.from_numpy(np.stack([p.cloud.points for p in all_parts])).float()
-    latents = model.latent(clouds)   # test clouds are only encoded, never trained on
+    latents = model.latent(stack_clouds(all_parts))   # test clouds are only encoded, never trained on
     dt = 1.0 / cfg.data.rate_hz
     head_cfg = cfg.stages.head
     stage = HeadStage(model, latents, lr=head_cfg.lr, dt=dt)
