@@ -44,6 +44,7 @@ def ctx():
     return context, test
 
 
+@pytest.mark.slow
 def test_oracle_recovers_the_simulating_parameters(ctx):
     context, test = ctx
     oracle = METHODS["oracle"]()
@@ -62,6 +63,7 @@ def test_nearest_uses_the_closest_training_part(ctx):
     np.testing.assert_allclose(got, expected, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_gpr_reproduces_a_training_part_at_its_own_latent(ctx):
     context, _ = ctx
     gpr = METHODS["gpr"]()

@@ -18,6 +18,7 @@ def run_predict(*args: str) -> subprocess.CompletedProcess:
                           timeout=300, cwd="/", env=os.environ)
 
 
+@pytest.mark.slow
 def test_predict_on_real_meshes_in_both_units(trained_run, real_meshes, tmp_path):
     for name in ("labit_positioning_pin_d5_20.stl", "factory_round_peg_8mm_tight.obj"):
         mesh = next(p for p in real_meshes if p.name == name)
@@ -47,6 +48,7 @@ def test_predict_follows_a_given_trajectory(trained_run, real_meshes, tmp_path):
     assert force["p_z"].max() == pytest.approx(3.0) and force["t"][-1] == pytest.approx(1.98, abs=0.03)
 
 
+@pytest.mark.slow
 def test_predict_errors_are_clear(trained_run, real_meshes, tmp_path):
     mesh = next(p for p in real_meshes if p.name == "labit_nut_tube.stl")
     cases = [

@@ -65,6 +65,7 @@ def test_a_crashing_run_ends_failed(tiny_data, tmp_path, monkeypatch):
     assert [r.info.status for r in new] == ["FAILED"]
 
 
+@pytest.mark.slow
 def test_a_multirun_is_a_parent_run_with_one_child_per_job(tiny_data, tmp_path):
     result = subprocess.run(
         [sys.executable, str(ROOT / "train.py"), "-m", "experiment=smoke", "seed=0,1", f"data.dir={tiny_data}",

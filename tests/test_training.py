@@ -110,6 +110,7 @@ def run_train(*args: str, env: dict | None = None) -> subprocess.CompletedProces
                           timeout=600, env={**os.environ, **(env or {})}, cwd="/")
 
 
+@pytest.mark.slow
 def test_a_plugin_in_another_folder_trains_without_editing_the_core(tiny_data, tmp_path):
     package = tmp_path / "my_plugins" / "encoder"
     package.mkdir(parents=True)
@@ -139,6 +140,7 @@ def test_a_plugin_in_another_folder_trains_without_editing_the_core(tiny_data, t
     assert "MeanPoolVAE" in result.stdout and "dsub26" in result.stdout
 
 
+@pytest.mark.slow
 def test_the_readme_plugin_example_trains(tiny_data, tmp_path):
     """The 'Writing a plugin' example, taken from README.md as it stands, in a package of its own."""
     blocks = (ROOT / "README.md").read_text().split("```")
