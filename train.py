@@ -1,9 +1,10 @@
 """Train PIPE on one domain: `python train.py encoder=pointnet model=mds2 domain=conn`.
 
 Stage 1 trains the point-cloud VAE on the domain's training parts, stage 2 freezes the encoder and trains
-the head through the dynamic model against measured force; validation parts select the checkpoints and the
-test parts are evaluated at the end (FIT(F), FIT(dF/dt), rms, rms_rel). The synthetic dataset is generated
-first when it is missing. See `conf/config.yaml` for every option.
+the head through the dynamic model against measured force; validation parts select the checkpoints. The
+test parts are then evaluated for PIPE and the baselines (FIT(F), FIT(dF/dt), rms, rms_rel), the report is
+written and everything is logged to MLflow. The synthetic dataset is generated first when it is missing.
+See `conf/config.yaml` for every option.
 """
 
 from __future__ import annotations
@@ -40,6 +41,9 @@ def main(cfg: DictConfig) -> None:
     console.print(table)
     console.print(f"stage 1 {result.seconds['vae']:.0f} s, stage 2 {result.seconds['head']:.0f} s, "
                   f"evaluation {result.seconds['evaluation']:.0f} s; results in {result.run_dir}")
+    if result.mlflow_run_id:
+        console.print(f"MLflow run {result.mlflow_run_id} (`mlflow ui` from the project root); predict with: "
+                      f"python predict.py mesh=<part.stl> run={result.mlflow_run_id}")
 
 
 if __name__ == "__main__":
