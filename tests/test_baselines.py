@@ -110,3 +110,27 @@ def test_unknown_baseline_is_refused(ctx):
     context, test = ctx
     with pytest.raises(PipeError, match="unknown method"):
         evaluate_methods(context, [test], ["pipe", "kriging"])
+
+
+def test_reconstruction_metrics_of_a_perfect_and_a_shifted_reconstruction():
+    from pipe.evaluation.evaluate import reconstruction_metrics
+
+    class Echo(torch.nn.Module):
+        """Encodes a cloud as itself and decodes it shifted by `shift` mm along x."""
+
+        def __init__(self, shift: float) -> None:
+            super().__init__()
+            self.shift = shift
+
+        def encode(self, clouds):
+            return clouds, clouds
+
+        def decode(self, z):
+            return z + torch.tensor([self.shift, 0.0, 0.0])
+
+    points = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0]], dtype=np.float32)
+    parts = [PartData("p", PointCloud(points, np.zeros(3), "volume"), [], [])]
+    assert reconstruction_metrics(Echo(0.0), parts)["p"] == {"chamfer_mm2": 0.0, "nn_distance_mm": 0.0}
+    shifted = reconstruction_metrics(Echo(1.0), parts)["p"]
+    assert shifted["nn_distance_mm"] == pytest.approx(1.0)     # every nearest neighbour 1 mm away
+    assert shifted["chamfer_mm2"] == pytest.approx(6.0)        # 3 points x 1 mm^2, both ways

@@ -129,6 +129,10 @@ def log_outputs(run, cfg: DictConfig, metadata: dict[str, Any]) -> None:
         mlflow.log_metrics({f"test/{method}/{k}": v for k, v in result.domain.items()})
         for part, metrics in result.per_part.items():
             mlflow.log_metrics({f"test/{method}/{part}/{k}": v for k, v in metrics.items()})
+    for part, metrics in run.reconstruction.items():
+        mlflow.log_metrics({f"test/reconstruction/{part}/{k}": v for k, v in metrics.items()})
+    mlflow.log_metrics({f"test/reconstruction/{k}": sum(m[k] for m in run.reconstruction.values())
+                        / len(run.reconstruction) for k in ("chamfer_mm2", "nn_distance_mm")})
     mlflow.log_metrics({f"time/{stage}_s": seconds for stage, seconds in run.seconds.items()})
     mlflow.log_artifact(str(run.run_dir / "config.yaml"))
     mlflow.log_artifact(str(run.run_dir / "metrics.json"))

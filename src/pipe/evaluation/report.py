@@ -20,8 +20,8 @@ COLUMNS = [("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("nrmse_fit_F"
 
 
 def results_document(domain: str, counts: dict[str, int], results: dict[str, MethodResult],
-                     seconds: dict[str, float]) -> dict:
-    return {"domain": domain, "parts": counts, "seconds": seconds,
+                     reconstruction: dict[str, dict[str, float]], seconds: dict[str, float]) -> dict:
+    return {"domain": domain, "parts": counts, "seconds": seconds, "reconstruction": reconstruction,
             "methods": {name: {"domain": r.domain, "per_part": r.per_part} for name, r in results.items()}}
 
 
@@ -45,6 +45,10 @@ def results_markdown(doc: dict) -> str:
         for name, m in methods.items():
             lines.append(f"| {part} | {name} | " + " | ".join(_cell(m["per_part"][part], k) for k, _ in COLUMNS)
                          + " |")
+    lines += ["", "| test part | reconstruction: mean nearest-neighbour distance [mm] | Chamfer [mm^2] |",
+              "| --- | --- | --- |"]
+    lines += [f"| {part} | {r['nn_distance_mm']:.3f} | {r['chamfer_mm2']:.1f} |"
+              for part, r in doc["reconstruction"].items()]
     return "\n".join(lines) + "\n"
 
 
@@ -156,7 +160,7 @@ def plot_losses(run_dir: Path, path: Path) -> None:
 def write_report(run, out: Path) -> list[Path]:
     """results.json, results.md and the four figures of a finished run."""
     out.mkdir(parents=True, exist_ok=True)
-    doc = results_document(run.domain_name, run.counts, run.results, run.seconds)
+    doc = results_document(run.domain_name, run.counts, run.results, run.reconstruction, run.seconds)
     files = {"results.json": json.dumps(doc, indent=2) + "\n", "results.md": results_markdown(doc)}
     for name, text in files.items():
         (out / name).write_text(text)

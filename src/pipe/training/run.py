@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipe.data.prepare import DomainData, PartData, data_scales, prepare_domain
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
-from pipe.evaluation.evaluate import MethodResult, evaluate_methods
+from pipe.evaluation.evaluate import MethodResult, evaluate_methods, reconstruction_metrics
 from pipe.evaluation.report import write_report
 from pipe.model.interfaces import DynamicModel, ParameterHead
 from pipe.model.pipe_model import PIPEModel
@@ -45,6 +45,7 @@ class RunResult:
     test: list[PartData]
     dt: float
     results: dict[str, MethodResult]       # "pipe" and each baseline
+    reconstruction: dict[str, dict[str, float]]   # per test part: Chamfer and mean nearest-neighbour distance
     seconds: dict[str, float] = field(default_factory=dict)
     mlflow_run_id: str | None = None
 
@@ -153,12 +154,13 @@ def train_and_evaluate(cfg: DictConfig, data: DomainData, encoder: PointCloudVAE
     start = time.perf_counter()
     ctx = EvalContext(model, latents, index, train, val, dt, cfg.seed, dict(cfg.evaluation))
     results = evaluate_methods(ctx, test, ["pipe", *cfg.evaluation.baselines])
+    reconstruction = reconstruction_metrics(encoder, test)
     seconds["evaluation"] = time.perf_counter() - start
     run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, latents, index,
-                    test, dt, results, seconds)
+                    test, dt, results, reconstruction, seconds)
     (run_dir / "metrics.json").write_text(json.dumps(
         {"test": run.pipe.domain, "baselines": {n: r.domain for n, r in results.items() if n != "pipe"},
-         "per_part": run.pipe.per_part, "seconds": seconds}, indent=2) + "\n")
+         "per_part": run.pipe.per_part, "reconstruction": reconstruction, "seconds": seconds}, indent=2) + "\n")
     write_report(run, run_dir / "report")
     return run
 
