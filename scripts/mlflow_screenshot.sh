@@ -10,9 +10,10 @@ out=${1:-docs/figures/mlflow_runs.png}
 page=${2:-runs}
 store=${MLFLOW_TRACKING_URI:-sqlite:///$PWD/mlflow.db}
 port=${PORT:-5055}   # WINDOW=width,height sets the browser window (default 1700,950)
-.venv/bin/mlflow ui --backend-store-uri "$store" --host 127.0.0.1 --port "$port" > /tmp/mlflow_ui.log 2>&1 &
+log=$(mktemp)
+.venv/bin/mlflow ui --backend-store-uri "$store" --host 127.0.0.1 --port "$port" > "$log" 2>&1 &
 ui=$!
-trap 'kill $ui 2>/dev/null || true' EXIT
+trap 'kill $ui 2>/dev/null || true; rm -f "$log"' EXIT
 for _ in $(seq 60); do curl -sf "http://127.0.0.1:$port/health" > /dev/null && break; sleep 1; done
 experiment=$(MLFLOW_TRACKING_URI=$store .venv/bin/python -c \
   "import mlflow; print(mlflow.get_experiment_by_name('pipe').experiment_id)")
