@@ -39,7 +39,7 @@ def ctx():
     test = part("t", 2.0)
     model = PIPEModel(PointNetVAE(num_points=16), GaussianHead(32, 4), MDS2(), force_scale=10.0, depth_scale=6.0)
     latents = torch.tensor([[0.0] * 32, [1.0] * 32, [0.45] * 32])
-    context = EvalContext(model, latents, {"a": 0, "b": 1, "t": 2}, train, [], DT, seed=0,
+    context = EvalContext(model, latents, {"a": 0, "b": 1, "t": 2}, train, DT, seed=0,
                           settings={"oracle_steps": 400, "oracle_lr": 1e-2, "blackbox_steps": 1500})
     return context, test
 

@@ -18,7 +18,6 @@ class EvalContext:
     latents: torch.Tensor         # (parts, latent) mean codes of all the domain's parts
     index: dict[str, int]         # part name -> row of `latents`
     train: list[PartData]
-    val: list[PartData]
     dt: float                     # s, sample period of the profiles
     seed: int = 0
     settings: dict = field(default_factory=dict)   # per-baseline options from the `evaluation` config

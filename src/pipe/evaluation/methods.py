@@ -34,7 +34,7 @@ class Method(ABC):
     name: str
 
     def fit(self, ctx: EvalContext) -> None:
-        """Learn whatever the method needs from the training (and validation) parts."""
+        """Learn whatever the method needs from the training parts."""
 
     @abstractmethod
     def predict(self, ctx: EvalContext, part: PartData) -> list[np.ndarray]:

@@ -152,7 +152,7 @@ def train_and_evaluate(cfg: DictConfig, data: DomainData, encoder: PointCloudVAE
                                 run_dir, "head", resume)
 
     start = time.perf_counter()
-    ctx = EvalContext(model, latents, index, train, val, dt, cfg.seed, dict(cfg.evaluation))
+    ctx = EvalContext(model, latents, index, train, dt, cfg.seed, dict(cfg.evaluation))
     results = evaluate_methods(ctx, test, ["pipe", *cfg.evaluation.baselines])
     reconstruction = reconstruction_metrics(encoder, test)
     seconds["evaluation"] = time.perf_counter() - start
