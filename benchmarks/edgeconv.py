@@ -9,14 +9,11 @@ here too). Times one DGCNN-sized layer stack forward + backward at the paper's b
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from plugins.encoder.dgcnn import EdgeConv, gather_neighbours, knn  # noqa: E402
+from pipe.plugins.encoder.dgcnn import EdgeConv, gather_neighbours, knn
 
 
 def per_edge(layer: EdgeConv, x: torch.Tensor) -> torch.Tensor:

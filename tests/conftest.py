@@ -53,10 +53,10 @@ def tiny_data(tmp_path_factory) -> Path:
 
 
 def compose_config(overrides: list[str]):
-    from hydra import compose, initialize_config_dir
+    from hydra import compose, initialize_config_module
 
     os.environ.setdefault("PROJECT_ROOT", str(ROOT))
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
         return compose(config_name="config", overrides=overrides)
 
 
@@ -67,6 +67,6 @@ def smoke_config(data: Path, out: Path, *extra: str):
 @pytest.fixture(scope="session")
 def trained_run(tiny_data, tmp_path_factory):
     """One smoke training of the tiny domain, tracked in the session's MLflow store."""
-    from pipe.training.run import train_domain
+    from pipe.pipeline import run_domain
 
-    return train_domain(smoke_config(tiny_data, tmp_path_factory.mktemp("run")))
+    return run_domain(smoke_config(tiny_data, tmp_path_factory.mktemp("run")))

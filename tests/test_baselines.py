@@ -7,16 +7,16 @@ import pytest
 import torch
 
 from pipe.data.dataset import StaticCurve
-from pipe.data.prepare import PartData
+from pipe.data.prepared import PartData
 from pipe.data.preprocess import PointCloud, Profile
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.evaluation.methods import METHODS, identify
 from pipe.model.pipe_model import PIPEModel
-from plugins.encoder.pointnet import PointNetVAE
-from plugins.head.gaussian import GaussianHead
-from plugins.model.mds2 import MDS2
+from pipe.plugins.encoder.pointnet import PointNetVAE
+from pipe.plugins.head.gaussian import GaussianHead
+from pipe.plugins.model.mds2 import MDS2
 
 DT = 0.01
 TIME = np.arange(0, 2.0, DT)
@@ -50,7 +50,7 @@ def test_oracle_recovers_the_simulating_parameters(ctx):
     oracle = METHODS["oracle"]()
     forces = oracle.predict(context, test)
     assert np.sqrt(np.mean((forces[0] - test.profiles[0].force) ** 2)) < 0.02 * test.profiles[0].force.max()
-    static = oracle.static(context, test, 6.0, np.array([2.0, 4.0, 6.0]))
+    static = oracle.static_force(context, test, 6.0, np.array([2.0, 4.0, 6.0]))
     np.testing.assert_allclose(static, [4.0, 8.0, 12.0], rtol=0.03)   # the static gain b0 / a2 = 2
 
 
@@ -69,11 +69,11 @@ def test_gpr_reproduces_a_training_part_at_its_own_latent(ctx):
     gpr = METHODS["gpr"]()
     gpr.fit(context)
     train_a = context.train[0]
-    head = identify(context, train_a)
+    identified = identify(context, train_a)
     depth = np.array([1.5, 3.0, 4.5, 6.0])
     theta_gpr = gpr._theta(context, train_a, depth, 6.0)
-    theta_id = head(context.latent(train_a)[None], torch.tensor([6.0]))(
-        torch.tensor(depth, dtype=torch.float32)[None])[0] * context.model.theta_scale
+    theta_id = identified.profile(context.latent(train_a)[None], torch.tensor([6.0]))(
+        torch.tensor(depth, dtype=torch.float32)[None])[0]
     np.testing.assert_allclose(theta_gpr.numpy(), theta_id.numpy(), rtol=0.05)
 
 
@@ -82,7 +82,7 @@ def test_blackbox_learns_a_static_map(ctx):
     blackbox = METHODS["blackbox"]()
     blackbox.fit(context)
     a = context.train[0]
-    static = blackbox.static(context, a, 6.0, np.array([2.0, 4.0, 6.0]))
+    static = blackbox.static_force(context, a, 6.0, np.array([2.0, 4.0, 6.0]))
     np.testing.assert_allclose(static, [2.0, 4.0, 6.0], atol=0.6)     # part a: F = 1 N/mm * p (static)
 
 

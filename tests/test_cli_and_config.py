@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose, initialize_config_module
 
 from pipe.cli import main
 from pipe.data.domain import domain_from_config
@@ -24,7 +24,7 @@ PAPER_SPLITS = {
 
 
 def compose_config(overrides: list[str]):
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
         return compose(config_name="config", overrides=overrides)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipe.metrics import fit_percent, force_metrics, mean_metrics, nrmse_fit_percent, rms, rms_rel
+from pipe.evaluation.metrics import fit_percent, force_metrics, mean_metrics, nrmse_fit_percent, rms, rms_rel
 
 X = np.array([1.0, 2.0, 3.0, 4.0])
 X_HAT = np.array([1.0, 2.0, 3.0, 5.0])   # error 1 in the last sample; ||x - mean||^2 = 5

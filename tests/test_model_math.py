@@ -11,10 +11,10 @@ import torch
 from scipy.integrate import solve_ivp
 
 from pipe.model.chamfer import chamfer, mean_nearest_distance
-from plugins.encoder.dgcnn import EdgeConv, gather_neighbours, knn
-from plugins.head.gaussian import GaussianHead, GaussianProfile, centres, width_at_edge
-from plugins.model.mds1 import MDS1
-from plugins.model.mds2 import MDS2
+from pipe.plugins.encoder.dgcnn import EdgeConv, gather_neighbours, knn
+from pipe.plugins.head.gaussian import GaussianHead, GaussianProfile, centres, width_at_edge
+from pipe.plugins.model.mds1 import MDS1
+from pipe.plugins.model.mds2 import MDS2
 
 
 @pytest.fixture(autouse=True)

@@ -14,9 +14,9 @@ import torch
 from conftest import ROOT, TINY_DOMAIN, smoke_config
 from mlflow.tracking import MlflowClient
 
+from pipe import pipeline as run_module
+from pipe.pipeline import run_domain
 from pipe.tracking import dataset_version, flatten
-from pipe.training import run as run_module
-from pipe.training.run import train_domain
 
 
 def test_a_domain_run_records_params_metrics_tags_artifacts_and_model(trained_run, tiny_data):
@@ -25,7 +25,7 @@ def test_a_domain_run_records_params_metrics_tags_artifacts_and_model(trained_ru
     assert run.info.status == "FINISHED"
     params, metrics, tags = run.data.params, run.data.metrics, run.data.tags
     assert params["stages.vae.epochs"] == "2" and params["domain.name"] == "tiny"
-    assert params["encoder._target_"] == "plugins.encoder.pointnet.PointNetVAE"
+    assert params["encoder._target_"] == "pipe.plugins.encoder.pointnet.PointNetVAE"
     for method in ("pipe", "oracle", "nearest", "gpr", "blackbox", "mean"):
         assert f"test/{method}/fit_F" in metrics and f"test/{method}/dsub26/rms" in metrics
     assert metrics["test/pipe/fit_F"] == pytest.approx(trained_run.pipe.domain["fit_F"])
@@ -60,7 +60,7 @@ def test_a_crashing_run_ends_failed(tiny_data, tmp_path, monkeypatch):
     monkeypatch.setattr(run_module, "evaluate_methods", crash)
     before = {r.info.run_id for r in MlflowClient().search_runs([mlflow.get_experiment_by_name("pipe").experiment_id])}
     with pytest.raises(RuntimeError, match="exploded"):
-        train_domain(smoke_config(tiny_data, tmp_path))
+        run_domain(smoke_config(tiny_data, tmp_path))
     experiment = mlflow.get_experiment_by_name("pipe").experiment_id
     new = [r for r in MlflowClient().search_runs([experiment]) if r.info.run_id not in before]
     assert [r.info.status for r in new] == ["FAILED"]

@@ -15,7 +15,7 @@ import torch
 from conftest import ROOT, TINY_DOMAIN, smoke_config
 from conftest import compose_config as config
 
-from pipe.training.run import build_components, train_domain
+from pipe.pipeline import build_components, run_domain
 
 
 @pytest.mark.parametrize("encoder", ["pointnet", "dgcnn"])
@@ -42,7 +42,7 @@ def test_paper_values_are_the_defaults():
 
 @pytest.mark.parametrize("encoder, model", [("pointnet", "mds2"), ("dgcnn", "mds2"), ("pointnet", "mds1")])
 def test_smoke_training_runs_both_stages(tiny_data, tmp_path, encoder, model):
-    result = train_domain(smoke_config(tiny_data, tmp_path, f"encoder={encoder}", f"model={model}"))
+    result = run_domain(smoke_config(tiny_data, tmp_path, f"encoder={encoder}", f"model={model}"))
     assert set(result.pipe.per_part) == {"dsub26"}
     assert all(np.isfinite(v) for v in result.pipe.domain.values())
     for stage in ("vae", "head"):
@@ -53,16 +53,16 @@ def test_smoke_training_runs_both_stages(tiny_data, tmp_path, encoder, model):
 
 
 def test_same_seed_same_metrics(tiny_data, tmp_path):
-    runs = [train_domain(smoke_config(tiny_data, tmp_path / name)) for name in ("a", "b")]
+    runs = [run_domain(smoke_config(tiny_data, tmp_path / name)) for name in ("a", "b")]
     first, second = ({name: r.domain for name, r in run.results.items()} for run in runs)
     assert first == second and set(first) == {"pipe", "oracle", "nearest", "gpr", "blackbox", "mean"}
 
 
 def test_a_run_resumes_from_its_last_checkpoints(tiny_data, tmp_path):
     last_epoch = lambda stage: torch.load(tmp_path / f"checkpoints/{stage}/last.ckpt", weights_only=False)["epoch"]  # noqa: E731
-    train_domain(smoke_config(tiny_data, tmp_path))
+    run_domain(smoke_config(tiny_data, tmp_path))
     assert last_epoch("head") == 1                          # Lightning counts epochs from 0
-    train_domain(smoke_config(tiny_data, tmp_path / "ignored", f"resume={tmp_path}", "stages.head.epochs=4"))
+    run_domain(smoke_config(tiny_data, tmp_path / "ignored", f"resume={tmp_path}", "stages.head.epochs=4"))
     assert last_epoch("head") == 3 and last_epoch("vae") == 1  # stage 2 went on, stage 1 was not retrained
     assert not (tmp_path / "ignored").exists()
 
@@ -70,21 +70,21 @@ def test_a_run_resumes_from_its_last_checkpoints(tiny_data, tmp_path):
 def test_a_new_run_never_reuses_or_overwrites_checkpoints(tiny_data, tmp_path):
     from pipe.errors import PipeError
 
-    train_domain(smoke_config(tiny_data, tmp_path))
+    run_domain(smoke_config(tiny_data, tmp_path))
     before = (tmp_path / "checkpoints/head/last.ckpt").read_bytes()
     with pytest.raises(PipeError, match="already holds the checkpoints of an earlier run"):
-        train_domain(smoke_config(tiny_data, tmp_path))
+        run_domain(smoke_config(tiny_data, tmp_path))
     assert (tmp_path / "checkpoints/head/last.ckpt").read_bytes() == before
     with pytest.raises(PipeError, match="without checkpoints"):
-        train_domain(smoke_config(tiny_data, tmp_path / "x", f"resume={tmp_path / 'nothing'}"))
+        run_domain(smoke_config(tiny_data, tmp_path / "x", f"resume={tmp_path / 'nothing'}"))
 
 
 def test_head_loss_goes_down_on_data_the_model_can_explain():
     """Forces simulated by mds2 itself from a known profile: the head learns them from two latent codes."""
     from pipe.model.pipe_model import PIPEModel
-    from plugins.encoder.pointnet import PointNetVAE
-    from plugins.head.gaussian import GaussianHead
-    from plugins.model.mds2 import MDS2
+    from pipe.plugins.encoder.pointnet import PointNetVAE
+    from pipe.plugins.head.gaussian import GaussianHead
+    from pipe.plugins.model.mds2 import MDS2
 
     torch.manual_seed(0)
     dynamics = MDS2()
@@ -164,7 +164,7 @@ def test_the_readme_plugin_example_trains(tiny_data, tmp_path):
 @pytest.mark.parametrize("overrides, message", [
     (["encoder._target_=torch.nn.Identity"],
      "the encoder plugin torch.nn.Identity is not a pipe.model.vae.PointCloudVAE"),
-    (["+head.colour=red"], "the head plugin plugins.head.gaussian.GaussianHead could not be built: TypeError"),
+    (["+head.colour=red"], "the head plugin pipe.plugins.head.gaussian.GaussianHead could not be built: TypeError"),
 ])
 def test_a_broken_plugin_config_is_refused_clearly(tiny_data, tmp_path, overrides, message):
     result = run_train("experiment=smoke", *overrides, f"data.dir={tiny_data}", f"hydra.run.dir={tmp_path}",

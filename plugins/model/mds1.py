@@ -6,7 +6,6 @@ from __future__ import annotations
 import torch
 
 from pipe.model.interfaces import DynamicModel
-from pipe.model.ltv import midpoints, simulate
 
 
 class MDS1(DynamicModel):
@@ -19,10 +18,7 @@ class MDS1(DynamicModel):
     def parameter_scales(self, force_scale: float, depth_scale: float) -> torch.Tensor:
         return torch.tensor([self.time_constant, 1.0, force_scale / depth_scale])
 
-    def static_force(self, theta: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
-        """At rest F' = 0: F = b0 / a2 * p."""
-        return theta[..., 2] / theta[..., 1] * depth
-
-    def forward(self, theta: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
-        a1, a2, b0 = midpoints(theta).unbind(-1)
-        return simulate((-a2 / a1)[..., None, None], (b0 / a1)[..., None], midpoints(depth), dt)[..., 0]
+    def state_space(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x = (F,): F' = (b0 p - a2 F) / a1."""
+        a1, a2, b0 = theta.unbind(-1)
+        return (-a2 / a1)[..., None, None], (b0 / a1)[..., None]

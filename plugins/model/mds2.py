@@ -6,7 +6,6 @@ from __future__ import annotations
 import torch
 
 from pipe.model.interfaces import DynamicModel
-from pipe.model.ltv import midpoints, simulate
 
 
 class MDS2(DynamicModel):
@@ -20,13 +19,9 @@ class MDS2(DynamicModel):
         tau = self.time_constant
         return torch.tensor([tau * tau, 2 * tau, 1.0, force_scale / depth_scale])
 
-    def static_force(self, theta: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
-        """At rest F'' = F' = 0: F = b0 / a2 * p."""
-        return theta[..., 3] / theta[..., 2] * depth
-
-    def forward(self, theta: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
-        a0, a1, a2, b0 = midpoints(theta).unbind(-1)
+    def state_space(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x = (F, F'): F'' = (b0 p - a1 F' - a2 F) / a0."""
+        a0, a1, a2, b0 = theta.unbind(-1)
         zero, one = torch.zeros_like(a0), torch.ones_like(a0)
         a = torch.stack([torch.stack([zero, one], -1), torch.stack([-a2 / a0, -a1 / a0], -1)], -2)
-        b = torch.stack([zero, b0 / a0], -1)
-        return simulate(a, b, midpoints(depth), dt)[..., 0]
+        return a, torch.stack([zero, b0 / a0], -1)

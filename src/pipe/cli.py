@@ -60,16 +60,14 @@ def cmd_check(args: argparse.Namespace) -> int:
 def cmd_pointcloud(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from pipe.data.mesh import load_mesh
-    from pipe.data.preprocess import sample_point_cloud
+    from pipe.data.preprocess import cloud_from_mesh
 
-    mesh = load_mesh(args.mesh, args.units)
-    cloud = sample_point_cloud(mesh, n=args.points, seed=args.seed)
+    cloud = cloud_from_mesh(args.mesh, args.units, args.points, seed=args.seed)
     extents = (cloud.points.max(axis=0) - cloud.points.min(axis=0)).astype(float)
     assumed = " (assumed from its size)" if args.units == "auto" else ""
-    console.print(f"{args.mesh}: read in {mesh.metadata['file_units']}{assumed}; {len(cloud.points)} points, "
+    console.print(f"{args.mesh}: read in {cloud.mesh.units}{assumed}; {len(cloud.points)} points, "
                   f"extents {np.round(extents, 2).tolist()} mm, centred on the {cloud.centre_method} centre "
-                  f"{np.round(cloud.centre, 3).tolist()} mm, watertight: {mesh.is_watertight}")
+                  f"{np.round(cloud.centre, 3).tolist()} mm, watertight: {cloud.mesh.watertight}")
     if args.out:
         np.save(args.out, cloud.points)
         console.print(f"wrote {args.out}")

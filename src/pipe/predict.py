@@ -20,10 +20,10 @@ import torch  # noqa: E402
 from mlflow.exceptions import MlflowException  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from pipe.data.dataset import read_numeric_csv  # noqa: E402
-from pipe.data.mesh import load_mesh  # noqa: E402
-from pipe.data.preprocess import sample_point_cloud  # noqa: E402
+from pipe.data.dataset import Trial, read_numeric_csv  # noqa: E402
+from pipe.data.preprocess import PointCloud, cloud_from_mesh, resample  # noqa: E402
 from pipe.errors import PipeError  # noqa: E402
+from pipe.model.card import ModelCard  # noqa: E402
 from pipe.tracking import tracking_uri  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -47,23 +47,29 @@ def model_uri(run: str) -> str:
     return run if ":/" in run else f"runs:/{run}/model"
 
 
-def load_model(run: str, uri_override: str | None, root: Path) -> tuple[torch.nn.Module, dict[str, Any]]:
+def load_model(run: str, uri_override: str | None, root: Path) -> tuple[torch.nn.Module, ModelCard]:
+    """The trained PIPEModel and its model card from the MLflow store."""
     store = tracking_uri(uri_override, root)
     mlflow.set_tracking_uri(store)
     uri = model_uri(str(run))
     try:
-        metadata = mlflow.models.get_model_info(uri).metadata or {}
-        model = mlflow.pytorch.load_model(uri, map_location="cpu")
+        metadata = mlflow.models.get_model_info(uri).metadata
     except (MlflowException, OSError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise PipeError(f"no trained model at {uri} in the MLflow store {store} ({first}); give the run id "
                         "that train.py printed, or a runs:/ or models:/ URI") from None
-    return model.eval(), metadata
+    card = ModelCard.from_dict(metadata, uri)   # before unpickling: an incompatible model fails clearly
+    try:
+        model = mlflow.pytorch.load_model(uri, map_location="cpu")
+    except (MlflowException, OSError, ImportError, AttributeError) as exc:
+        raise PipeError(f"the model at {uri} could not be loaded ({type(exc).__name__}: {exc}); a model with "
+                        "plugins from another package needs that package installed") from None
+    return model.eval(), card
 
 
-def check_size(extent: float, metadata: dict[str, Any], units: str, assumed: str, mesh: Path) -> list[str]:
+def check_size(extent: float, card: ModelCard, units: str, assumed: str, mesh: Path) -> list[str]:
     """Refuse a part whose size says the unit guess was wrong; warn when the user's own unit looks odd."""
-    low, high = metadata.get("train_size_mm", (extent, extent))
+    low, high = card.train_size_mm
     if low / SIZE_TOLERANCE <= extent <= high * SIZE_TOLERANCE:
         return []
     message = (f"the part is {extent:.4g} mm large once read in {assumed}, but the model was trained on parts of "
@@ -82,29 +88,33 @@ def ramp_and_hold(depth: float, speed: float, rest: float, hold: float, rate: fl
 
 
 def load_trajectory(path: Path, columns: DictConfig, rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """Time [s] and depth [mm] of a trajectory CSV, from zero and resampled like the training profiles."""
     data = read_numeric_csv(path, (columns.time, columns.position))
     time, depth = data[columns.time], data[columns.position]
     if (np.diff(time) <= 0).any():
         raise PipeError(f"time column {columns.time!r} is not strictly increasing", path)
-    grid = np.arange(int(np.floor((time[-1] - time[0]) * rate)) + 1) / rate
-    return grid, np.interp(grid + time[0], time, depth - depth[0])
+    profile = resample(Trial(path.stem, time - time[0], depth - depth[0], np.zeros_like(depth)), rate)
+    return profile.time, profile.depth
+
+
+def sample_mesh(cfg: DictConfig, card: ModelCard) -> tuple[PointCloud, list[str]]:
+    """The mesh's point cloud as in training, and notes on the unit it was read in and its size."""
+    cloud = cloud_from_mesh(cfg.mesh, cfg.units, card.points, seed=card.cloud_seed)
+    units = cloud.mesh.units
+    notes = [f"mesh read in {units}" + (" (assumed from its size)" if cfg.units == "auto" else "")]
+    return cloud, notes + check_size(cloud.mesh.extent_mm, card, cfg.units, units, Path(cfg.mesh))
 
 
 @torch.no_grad()
 def predict(cfg: DictConfig) -> Prediction:
-    mesh_path = Path(cfg.mesh)
-    model, metadata = load_model(cfg.run, cfg.mlflow.tracking_uri, Path(cfg.paths.root))
-    mesh = load_mesh(mesh_path, cfg.units)
-    notes = [f"mesh read in {mesh.metadata['file_units']}" + (" (assumed from its size)" if cfg.units == "auto"
-                                                               else "")]
-    notes += check_size(float(mesh.extents.max()), metadata, cfg.units, mesh.metadata["file_units"], mesh_path)
-    cloud = sample_point_cloud(mesh, int(metadata.get("points", 1024)), seed=int(metadata.get("cloud_seed", 0)))
+    model, card = load_model(cfg.run, cfg.mlflow.tracking_uri, Path(cfg.paths.root))
+    cloud, notes = sample_mesh(cfg, card)
     z = model.latent(torch.from_numpy(cloud.points)[None])
-    rate = float(metadata.get("rate_hz", 100))
+    rate = card.rate_hz
     if cfg.trajectory:
         time, depth = load_trajectory(Path(cfg.trajectory), cfg.trajectory_columns, rate)
     else:
-        target = cfg.ramp.depth_mm or float(metadata.get("depth_scale_mm", 10.0))
+        target = cfg.ramp.depth_mm or card.depth_scale_mm
         time, depth = ramp_and_hold(target, cfg.ramp.speed_mm_s, cfg.ramp.rest_s, cfg.ramp.hold_s, rate)
     p = torch.as_tensor(depth, dtype=torch.float32)[None]
     force = model(z, p, 1.0 / rate)[0].numpy()
@@ -118,8 +128,7 @@ def predict(cfg: DictConfig) -> Prediction:
         scale = profile.scale[:, None]
         local = {"amplitude": (raw.amplitude[0] * scale).tolist(), "centre_mm": raw.centre[0].tolist(),
                  "width_mm": raw.width[0].tolist()}
-    names = list(metadata.get("parameter_names", model.dynamics.parameter_names))
-    return Prediction(grid[0].numpy(), theta, names, time, depth, force, local, notes)
+    return Prediction(grid[0].numpy(), theta, list(card.parameter_names), time, depth, force, local, notes)
 
 
 def write_prediction(pred: Prediction, out: Path, mesh: Path, run: str) -> list[Path]:

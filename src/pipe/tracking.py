@@ -23,6 +23,8 @@ from lightning.pytorch.loggers import MLFlowLogger
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
+from pipe import __version__
+
 PARENT_RUN_ENV = "PIPE_MLFLOW_PARENT_RUN_ID"
 
 
@@ -123,8 +125,9 @@ class MLflowSweepCallback(Callback):
             MlflowClient().set_terminated(parent, "FINISHED")
 
 
-def log_outputs(run, cfg: DictConfig, metadata: dict[str, Any]) -> None:
-    """Final metrics of PIPE and every baseline, the run's files and the trained model."""
+def log_outputs(run, registered_model: str | None) -> None:
+    """Final metrics of PIPE and every baseline, the run's files, and the trained model with its model card
+    (as the model's metadata, which predict.py reads back)."""
     for method, result in run.results.items():
         mlflow.log_metrics({f"test/{method}/{k}": v for k, v in result.domain.items()})
         for part, metrics in result.per_part.items():
@@ -137,7 +140,10 @@ def log_outputs(run, cfg: DictConfig, metadata: dict[str, Any]) -> None:
     mlflow.log_artifact(str(run.run_dir / "config.yaml"))
     mlflow.log_artifact(str(run.run_dir / "metrics.json"))
     mlflow.log_artifacts(str(run.run_dir / "report"), "report")
-    mlflow.pytorch.log_model(run.model, name="model", metadata=metadata, serialization_format="pickle",
-                             code_paths=[str(Path(cfg.paths.root) / "plugins")],
-                             pip_requirements=[f"torch=={torch.__version__.split('+')[0]}"],
-                             registered_model_name=cfg.mlflow.registered_model or None)
+    mlflow.log_dict(run.card.to_dict(), "model_card.json")
+    # The model pickles its plugins by reference (pipe.plugins.*, or an installed plugin package's module):
+    # loading it needs pipe, and those packages, installed.
+    mlflow.pytorch.log_model(run.model, name="model", metadata=run.card.to_dict(), serialization_format="pickle",
+                             pip_requirements=[f"torch=={torch.__version__.split('+')[0]}",
+                                               f"pipe-sysid=={__version__}"],
+                             registered_model_name=registered_model)

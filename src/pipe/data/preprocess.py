@@ -8,13 +8,25 @@ model learns the steady state.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import trimesh
 
 from pipe.data.dataset import Trial
+from pipe.data.mesh import load_mesh
+
+
+@dataclass(frozen=True)
+class MeshInfo:
+    """What a point cloud was sampled from."""
+
+    path: Path
+    units: str          # the length unit the file was read in (stated, or guessed from its size)
+    extent_mm: float    # the mesh's largest bounding-box extent
+    watertight: bool
 
 
 @dataclass(frozen=True)
@@ -22,6 +34,7 @@ class PointCloud:
     points: np.ndarray  # (n, 3) float32, mm, centred
     centre: np.ndarray  # (3,) the centre that was subtracted, mm, in the mesh's frame
     centre_method: str  # "volume", "convex hull" or "surface"
+    mesh: MeshInfo | None = None
 
 
 @dataclass(frozen=True)
@@ -65,6 +78,15 @@ def sample_point_cloud(mesh: trimesh.Trimesh, n: int = 1024, seed: int = 0, init
     centre, method = volume_centre(mesh)
     points = (np.asarray(sampled.points) - centre).astype(np.float32)
     return PointCloud(points, centre, method)
+
+
+def cloud_from_mesh(path: str | Path, units: str = "mm", points: int = 1024, seed: int = 0) -> PointCloud:
+    """The whole mesh -> point cloud chain of training, `pipe data pointcloud` and prediction: load the mesh
+    file in mm (`units` its length unit, or "auto"), sample `points` points, centre them."""
+    mesh = load_mesh(path, units)
+    cloud = sample_point_cloud(mesh, points, seed=seed)
+    info = MeshInfo(Path(path), mesh.metadata["file_units"], float(mesh.extents.max()), bool(mesh.is_watertight))
+    return replace(cloud, mesh=info)
 
 
 def resample(trial: Trial, rate_hz: float) -> Profile:

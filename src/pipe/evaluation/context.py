@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 
-from pipe.data.prepare import PartData, data_scales
+from pipe.data.batches import TrialBatch, part_batch
+from pipe.data.prepared import PartData, data_scales
 from pipe.model.pipe_model import PIPEModel
-from pipe.training.batches import TrialBatch, collate_trials
 
 
 @dataclass
@@ -25,7 +24,7 @@ class EvalContext:
 
     def batch(self, part: PartData) -> TrialBatch:
         """All trials of a part, padded, tagged with the part's latent row."""
-        return collate_trials([(self.index[part.name], p.depth, p.force) for p in part.profiles])
+        return part_batch(part, self.index[part.name])
 
     def latent(self, part: PartData) -> torch.Tensor:
         return self.latents[self.index[part.name]]
@@ -34,8 +33,3 @@ class EvalContext:
     def scales(self) -> tuple[float, float]:
         """Typical force [N] and depth [mm] of the training trials."""
         return data_scales(self.train)
-
-
-def unpad(values: np.ndarray, part: PartData) -> list[np.ndarray]:
-    """Rows of a padded (trials, T) array cut back to each trial's own length."""
-    return [values[i, : len(p.force)] for i, p in enumerate(part.profiles)]

@@ -7,14 +7,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pipe.data.prepare import PartData
+from pipe.data.batches import stack_clouds
+from pipe.data.prepared import PartData
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
-from pipe.evaluation.methods import METHODS
-from pipe.metrics import force_metrics, mean_metrics, rms
+from pipe.evaluation.methods import METHODS, Method
+from pipe.evaluation.metrics import force_metrics, mean_metrics, rms
 from pipe.model.chamfer import chamfer, mean_nearest_distance
 from pipe.model.vae import PointCloudVAE
-from pipe.training.batches import stack_clouds
 
 
 @dataclass
@@ -24,20 +24,20 @@ class MethodResult:
     forces: dict[str, list[np.ndarray]]        # predicted force of each test trial, for the plots
 
 
-def static_metrics(method, ctx: EvalContext, part: PartData, trial: int) -> dict[str, float]:
+def static_metrics(method: Method, ctx: EvalContext, part: PartData, trial: int) -> dict[str, float]:
     """Error of the predicted quasi-static force-depth curve against the stored truth (synthetic data)."""
-    truth = part.statics[trial]
+    truth = part.static_curves[trial]
     if truth is None:
         return {}
     depth_max = float(np.abs(part.profiles[trial].depth).max())
-    predicted = method.static(ctx, part, depth_max, truth.depth)
+    predicted = method.static_force(ctx, part, depth_max, truth.depth)
     if predicted is None:
         return {}
     error = rms(truth.force, predicted)
     return {"static_rms": error, "static_rms_rel": error / float(np.abs(truth.force).max())}
 
 
-def score(method, ctx: EvalContext, part: PartData, forces: list[np.ndarray]) -> dict[str, float]:
+def score(method: Method, ctx: EvalContext, part: PartData, forces: list[np.ndarray]) -> dict[str, float]:
     rows = [force_metrics(p.force, f, ctx.dt) | static_metrics(method, ctx, part, i)
             for i, (p, f) in enumerate(zip(part.profiles, forces))]
     keys = set.intersection(*(set(r) for r in rows))
@@ -46,6 +46,7 @@ def score(method, ctx: EvalContext, part: PartData, forces: list[np.ndarray]) ->
 
 @torch.no_grad()
 def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -> dict[str, MethodResult]:
+    """Fit and score each named method (see `METHODS`) on the test parts."""
     unknown = [n for n in names if n not in METHODS]
     if unknown:
         raise PipeError(f"unknown method(s) {unknown} in evaluation.baselines; available: {list(METHODS)}")

@@ -22,14 +22,19 @@ from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 from torch import nn
 
-from pipe.data.prepare import PartData
-from pipe.evaluation.context import EvalContext, unpad
-from pipe.model.interfaces import ParameterHead
-from pipe.training.stages import masked_mse
+from pipe.data.batches import unpad
+from pipe.data.prepared import PartData
+from pipe.evaluation.context import EvalContext
+from pipe.model.pipe_model import PIPEModel
+from pipe.registry import Registry
 
 
 class Method(ABC):
-    """A way to predict a test part's force from what the evaluation context offers."""
+    """A way to predict a test part's force from what the evaluation context offers.
+
+    Register a subclass with `@METHODS.register` (in a plugin package: a module named by a `pipe.plugins`
+    entry point) and name it in `evaluation.baselines`.
+    """
 
     name: str
 
@@ -40,68 +45,70 @@ class Method(ABC):
     def predict(self, ctx: EvalContext, part: PartData) -> list[np.ndarray]:
         """Predicted force [N] of each of the part's trials, on the trial's own samples."""
 
-    def static(self, ctx: EvalContext, part: PartData, depth_max: float, depth: np.ndarray) -> np.ndarray | None:
+    def static_force(self, ctx: EvalContext, part: PartData, depth_max: float,
+                     depth: np.ndarray) -> np.ndarray | None:
         """Predicted quasi-static force [N] at the given depths [mm] (trajectory reaching depth_max), if any."""
         return None
 
 
-@torch.no_grad()
-def _static_from_head(ctx: EvalContext, head: ParameterHead, z: torch.Tensor, depth_max: float,
-                      depth: np.ndarray) -> np.ndarray | None:
-    p = torch.as_tensor(depth, dtype=torch.float32)[None]
-    theta = head(z[None], torch.tensor([depth_max]))(p) * ctx.model.theta_scale
-    static = ctx.model.dynamics.static_force(theta, p)
-    return None if static is None else static[0].numpy()
+METHODS: Registry[type[Method]] = Registry("method")
 
 
 @torch.no_grad()
-def _head_forces(ctx: EvalContext, head: ParameterHead, z: torch.Tensor, part: PartData) -> list[np.ndarray]:
+def model_forces(ctx: EvalContext, model: PIPEModel, z: torch.Tensor, part: PartData) -> list[np.ndarray]:
+    """The force of each of the part's trials from `model` at latent code z (latent,)."""
     batch = ctx.batch(part)
-    zs = z.expand(len(batch.part), -1)
-    theta = head(zs, batch.depth.abs().amax(1))(batch.depth) * ctx.model.theta_scale
-    return unpad(ctx.model.dynamics(theta, batch.depth, ctx.dt).numpy(), part)
+    return unpad(model(z.expand(len(batch.part), -1), batch.depth, batch.dt).numpy(), part)
 
 
+@torch.no_grad()
+def model_static_force(model: PIPEModel, z: torch.Tensor, depth_max: float, depth: np.ndarray) -> np.ndarray:
+    p = torch.as_tensor(depth, dtype=torch.float32)[None]
+    return model.static_force(z[None], torch.tensor([depth_max]), p)[0].numpy()
+
+
+@METHODS.register
 class PIPE(Method):
     name = "pipe"
 
-    def predict(self, ctx: EvalContext, part: PartData) -> list[np.ndarray]:
-        return _head_forces(ctx, ctx.model.head, ctx.latent(part), part)
+    def predict(self, ctx, part):
+        return model_forces(ctx, ctx.model, ctx.latent(part), part)
 
-    def static(self, ctx, part, depth_max, depth):
-        return _static_from_head(ctx, ctx.model.head, ctx.latent(part), depth_max, depth)
+    def static_force(self, ctx, part, depth_max, depth):
+        return model_static_force(ctx.model, ctx.latent(part), depth_max, depth)
 
 
-def identify(ctx: EvalContext, part: PartData) -> ParameterHead:
+def identify(ctx: EvalContext, part: PartData) -> PIPEModel:
     """System identification of one part: the head's profile structure fitted to the part's own trials
     (its latent code fixed), starting from PIPE's head. Cached per part in the context."""
     fits = ctx.cache.setdefault("identified", {})
     if part.name not in fits:
-        head = copy.deepcopy(ctx.model.head).train()
+        model = ctx.model.with_head(copy.deepcopy(ctx.model.head).train())
         batch, z = ctx.batch(part), ctx.latent(part)
-        optimiser = torch.optim.Adam(head.parameters(), lr=ctx.settings.get("oracle_lr", 1e-3))
-        depth_max = batch.depth.abs().amax(1)
+        optimiser = torch.optim.Adam(model.head.parameters(), lr=ctx.settings.get("oracle_lr", 1e-3))
         with torch.enable_grad():
             for _ in range(ctx.settings.get("oracle_steps", 200)):
                 optimiser.zero_grad()
-                theta = head(z.expand(len(batch.part), -1), depth_max)(batch.depth) * ctx.model.theta_scale
-                loss = masked_mse(ctx.model.dynamics(theta, batch.depth, ctx.dt), batch.force, batch.mask)
+                loss = model.loss(z.expand(len(batch.part), -1), batch)
                 loss.backward()
                 optimiser.step()
-        fits[part.name] = head.eval().requires_grad_(False)
+        model.head.eval().requires_grad_(False)
+        fits[part.name] = model
     return fits[part.name]
 
 
+@METHODS.register
 class Oracle(Method):
     name = "oracle"
 
     def predict(self, ctx, part):
-        return _head_forces(ctx, identify(ctx, part), ctx.latent(part), part)
+        return model_forces(ctx, identify(ctx, part), ctx.latent(part), part)
 
-    def static(self, ctx, part, depth_max, depth):
-        return _static_from_head(ctx, identify(ctx, part), ctx.latent(part), depth_max, depth)
+    def static_force(self, ctx, part, depth_max, depth):
+        return model_static_force(identify(ctx, part), ctx.latent(part), depth_max, depth)
 
 
+@METHODS.register
 class Nearest(Method):
     name = "nearest"
 
@@ -110,12 +117,13 @@ class Nearest(Method):
         return train[torch.cdist(ctx.latent(part)[None], train)[0].argmin()]
 
     def predict(self, ctx, part):
-        return _head_forces(ctx, ctx.model.head, self._nearest(ctx, part), part)
+        return model_forces(ctx, ctx.model, self._nearest(ctx, part), part)
 
-    def static(self, ctx, part, depth_max, depth):
-        return _static_from_head(ctx, ctx.model.head, self._nearest(ctx, part), depth_max, depth)
+    def static_force(self, ctx, part, depth_max, depth):
+        return model_static_force(ctx.model, self._nearest(ctx, part), depth_max, depth)
 
 
+@METHODS.register
 class GPR(Method):
     """Latent code -> log of each identified parameter profile sampled at `grid` fractions of max depth."""
 
@@ -125,10 +133,10 @@ class GPR(Method):
     def fit(self, ctx):
         rows, targets = [], []
         for part in ctx.train:
-            head, z = identify(ctx, part), ctx.latent(part)
+            z = ctx.latent(part)
             depth_max = float(np.mean([np.abs(p.depth).max() for p in part.profiles]))
             depth = torch.tensor(self.grid * depth_max, dtype=torch.float32)[None]
-            theta = head(z[None], torch.tensor([depth_max]))(depth) * ctx.model.theta_scale   # (1, G, P)
+            theta = identify(ctx, part).profile(z[None], torch.tensor([depth_max]))(depth)   # (1, G, P)
             rows.append(z.numpy())
             targets.append(np.log(theta[0].numpy()).T.ravel())
         x = np.stack(rows)
@@ -155,12 +163,12 @@ class GPR(Method):
         return out
 
     @torch.no_grad()
-    def static(self, ctx, part, depth_max, depth):
+    def static_force(self, ctx, part, depth_max, depth):
         p = torch.as_tensor(depth, dtype=torch.float32)[None]
-        static = ctx.model.dynamics.static_force(self._theta(ctx, part, depth, depth_max)[None], p)
-        return None if static is None else static[0].numpy()
+        return ctx.model.dynamics.static_force(self._theta(ctx, part, depth, depth_max)[None], p)[0].numpy()
 
 
+@METHODS.register
 class BlackBox(Method):
     """An MLP f(z, p_z) -> F trained on every sample of the training trials (MSE); no dynamics, no physics."""
 
@@ -198,10 +206,11 @@ class BlackBox(Method):
     def predict(self, ctx, part):
         return [self._force(ctx, part, p.depth) for p in part.profiles]
 
-    def static(self, ctx, part, depth_max, depth):
+    def static_force(self, ctx, part, depth_max, depth):
         return self._force(ctx, part, depth)
 
 
+@METHODS.register
 class MeanProfile(Method):
     """The mean force of all training samples in 0.1 mm depth bins, looked up at the test depth."""
 
@@ -222,9 +231,6 @@ class MeanProfile(Method):
     def predict(self, ctx, part):
         return [np.interp(p.depth, self.depth, self.force) for p in part.profiles]
 
-    def static(self, ctx, part, depth_max, depth):
+    def static_force(self, ctx, part, depth_max, depth):
         return np.interp(depth, self.depth, self.force)
 
-
-METHODS: dict[str, type[Method]] = {m.name: m for m in (PIPE, Oracle, Nearest, GPR, BlackBox, MeanProfile)}
-BASELINES = [name for name in METHODS if name != "pipe"]

@@ -3,7 +3,8 @@
 - encoder (`conf/encoder/`): a `pipe.model.vae.PointCloudVAE` subclass: point cloud -> latent distribution
   and reconstruction;
 - head (`conf/head/`): latent -> parameter profiles Theta(p_z), a `ParameterHead`;
-- dynamic model (`conf/model/`): Theta(p_z(t)) and p_z(t) -> force F(t), a `DynamicModel`.
+- dynamic model (`conf/model/`): Theta(p_z(t)) and p_z(t) -> force F(t), a `DynamicModel` that gives only
+  its state-space form; the base class discretises and simulates it.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ from typing import Protocol
 
 import torch
 from torch import nn
+
+from pipe.model.ltv import midpoints, simulate
 
 
 class ParameterProfile(Protocol):
@@ -35,7 +38,11 @@ class ParameterHead(nn.Module, ABC):
 
 
 class DynamicModel(nn.Module, ABC):
-    """A parametric model M(Theta, u) -> x driven by the depth p_z(t), answering the force F(t)."""
+    """A linear model with parameters that vary with depth, x' = A(Theta) x + B(Theta) p_z, force F = x[0].
+
+    A plugin gives its parameter names, their typical scales and `state_space`; this base owns the
+    discretisation and the simulation (`pipe.model.ltv`) and derives the static force from the same form.
+    """
 
     parameter_names: tuple[str, ...] = ()
 
@@ -48,9 +55,16 @@ class DynamicModel(nn.Module, ABC):
         """
 
     @abstractmethod
-    def forward(self, theta: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
-        """theta (B, T, P) at the samples of depth (B, T) [mm], sample period dt [s] -> force (B, T) [N]."""
+    def state_space(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Theta (..., P) -> A (..., n, n) and B (..., n) of x' = A x + B p_z; the force is the state x[0]."""
 
-    def static_force(self, theta: torch.Tensor, depth: torch.Tensor) -> torch.Tensor | None:
-        """The steady-state force at each depth (quasi-static insertion), or None if the model has none."""
-        return None
+    def forward(self, theta: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
+        """theta (B, T, P) at the samples of depth (B, T) [mm], sample period dt [s] -> force (B, T) [N],
+        from zero initial state, the parameters and the depth held at their midpoints over each period."""
+        a, b = self.state_space(midpoints(theta))
+        return simulate(a, b, midpoints(depth), dt)[..., 0]
+
+    def static_force(self, theta: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """The steady-state force at each depth (quasi-static insertion): x = -A^-1 B p_z, F = x[0]."""
+        a, b = self.state_space(theta)
+        return -torch.linalg.solve(a, b.unsqueeze(-1))[..., 0, 0] * depth

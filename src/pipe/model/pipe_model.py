@@ -1,11 +1,17 @@
-"""PIPE: encoder E, head R and dynamic model M assembled, NN(P) = R(E(P)) -> Theta, M(Theta, p_z) -> F."""
+"""PIPE: encoder E, head R and dynamic model M assembled, NN(P) = R(E(P)) -> Theta, M(Theta, p_z) -> F.
+
+This is the one forward path: training, evaluation (PIPE and the baselines built on its parts), the
+report and prediction all go through `profile`, `forward`, `static_force` and `loss`.
+"""
 
 from __future__ import annotations
 
 import torch
 from torch import nn
 
+from pipe.data.batches import TrialBatch
 from pipe.model.interfaces import DynamicModel, ParameterHead, ParameterProfile
+from pipe.model.losses import masked_mse
 from pipe.model.vae import PointCloudVAE
 
 
@@ -27,6 +33,12 @@ class PIPEModel(nn.Module):
         self.encoder, self.head, self.dynamics = encoder, head, dynamics
         self.register_buffer("theta_scale", dynamics.parameter_scales(force_scale, depth_scale).float())
 
+    def with_head(self, head: ParameterHead) -> PIPEModel:
+        """The same encoder, dynamic model and scales with another head (e.g. one identified per part)."""
+        other = PIPEModel(self.encoder, head, self.dynamics)
+        other.theta_scale = self.theta_scale.clone()
+        return other
+
     @torch.no_grad()
     def latent(self, points: torch.Tensor) -> torch.Tensor:
         """The encoder's mean latent code of clouds (B, n, 3) in mm; the encoder is frozen after stage 1."""
@@ -37,9 +49,18 @@ class PIPEModel(nn.Module):
         return mu
 
     def profile(self, z: torch.Tensor, depth_max: torch.Tensor) -> ScaledProfile:
+        """Theta(p_z) in physical units for latents z (B, latent) and trajectories reaching depth_max (B,) mm."""
         return ScaledProfile(self.head(z, depth_max), self.theta_scale)
 
     def forward(self, z: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
         """Force (B, T) for latents z (B, latent) along depth trajectories (B, T) in mm, sampled every dt s."""
         theta = self.profile(z, depth.abs().amax(dim=1))(depth)
         return self.dynamics(theta, depth, dt)
+
+    def static_force(self, z: torch.Tensor, depth_max: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """Quasi-static force (B, G) at depths (B, G) mm of trajectories that reach depth_max (B,) mm."""
+        return self.dynamics.static_force(self.profile(z, depth_max)(depth), depth)
+
+    def loss(self, z: torch.Tensor, batch: TrialBatch) -> torch.Tensor:
+        """The head's loss (paper, L_reg): MSE of the simulated against the measured force, padding excluded."""
+        return masked_mse(self(z, batch.depth, batch.dt), batch.force, batch.mask)

@@ -60,7 +60,3 @@ class PointCloudVAE(nn.Module, ABC):
         z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if self.training else mu
         return VAEOutput(mu, logvar, z, self.decode(z))
 
-
-def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
-    """KL(q(z|x) || N(0, I)) per cloud, summed over the latent dimensions: (B,)."""
-    return -0.5 * torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=-1)

@@ -5,10 +5,11 @@ from __future__ import annotations
 import lightning as L
 import torch
 
+from pipe.data.batches import TrialBatch
 from pipe.model.chamfer import chamfer, mean_nearest_distance
+from pipe.model.losses import kl_divergence
 from pipe.model.pipe_model import PIPEModel
-from pipe.model.vae import PointCloudVAE, kl_divergence
-from pipe.training.batches import TrialBatch
+from pipe.model.vae import PointCloudVAE
 
 
 class VAEStage(L.LightningModule):
@@ -40,12 +41,6 @@ class VAEStage(L.LightningModule):
         return torch.optim.Adam(self.encoder.parameters(), lr=self.lr)
 
 
-def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Paper: L_reg = e^T e / n over the real (unpadded) samples."""
-    err = (pred - target)[mask]
-    return err.pow(2).mean()
-
-
 class HeadStage(L.LightningModule):
     """Stage 2: encoder frozen; the head is trained through the dynamic model against measured force (MSE).
 
@@ -53,15 +48,14 @@ class HeadStage(L.LightningModule):
     instead of re-encoding the same clouds at every step.
     """
 
-    def __init__(self, model: PIPEModel, latents: torch.Tensor, lr: float, dt: float) -> None:
+    def __init__(self, model: PIPEModel, latents: torch.Tensor, lr: float) -> None:
         super().__init__()
-        self.model, self.lr, self.dt = model, lr, dt
+        self.model, self.lr = model, lr
         self.register_buffer("latents", latents)
         model.encoder.requires_grad_(False)
 
     def _step(self, batch: TrialBatch, split: str) -> torch.Tensor:
-        pred = self.model(self.latents[batch.part], batch.depth, self.dt)
-        loss = masked_mse(pred, batch.force, batch.mask)
+        loss = self.model.loss(self.latents[batch.part], batch)
         self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False,
                  prog_bar=split == "val")
         return loss

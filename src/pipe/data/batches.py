@@ -8,7 +8,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from pipe.data.prepare import PartData
+from pipe.data.prepared import PartData
+from pipe.data.preprocess import Profile
 
 
 @dataclass
@@ -17,6 +18,7 @@ class TrialBatch:  # not frozen: Lightning moves its tensors to the device in pl
     depth: torch.Tensor    # (B, T) mm, padded with the final value
     force: torch.Tensor    # (B, T) N, padded with the final value
     mask: torch.Tensor     # (B, T) True on real samples
+    dt: float              # s, the profiles' common sample period
 
 
 def stack_clouds(parts: list[PartData]) -> torch.Tensor:
@@ -24,28 +26,47 @@ def stack_clouds(parts: list[PartData]) -> torch.Tensor:
     return torch.from_numpy(np.stack([p.cloud.points for p in parts])).float()
 
 
+def sample_period(profile: Profile) -> float:
+    return float(profile.time[1] - profile.time[0])
+
+
 class TrialDataset(Dataset):
     """Every trial of the given parts; `part_index` maps part names to rows of the latent table."""
 
     def __init__(self, parts: list[PartData], part_index: dict[str, int]) -> None:
-        self.items = [(part_index[p.name], prof.depth, prof.force) for p in parts for prof in p.profiles]
+        self.items = [(part_index[p.name], prof) for p in parts for prof in p.profiles]
 
     def __len__(self) -> int:
         return len(self.items)
 
-    def __getitem__(self, i: int) -> tuple[int, np.ndarray, np.ndarray]:
+    def __getitem__(self, i: int) -> tuple[int, Profile]:
         return self.items[i]
 
 
-def collate_trials(items: list[tuple[int, np.ndarray, np.ndarray]]) -> TrialBatch:
-    length = max(len(d) for _, d, _ in items)
+def collate_trials(items: list[tuple[int, Profile]]) -> TrialBatch:
+    """Trials of one sample rate, padded with their final values to the longest."""
+    periods = {round(sample_period(p), 12) for _, p in items}
+    if len(periods) != 1:
+        raise ValueError(f"trials of different sample periods {sorted(periods)} cannot share a batch")
+    length = max(len(p.depth) for _, p in items)
     pad = lambda x: np.pad(x, (0, length - len(x)), mode="edge")  # noqa: E731
     return TrialBatch(
-        part=torch.tensor([p for p, _, _ in items]),
-        depth=torch.from_numpy(np.stack([pad(d) for _, d, _ in items])).float(),
-        force=torch.from_numpy(np.stack([pad(f) for _, _, f in items])).float(),
-        mask=torch.from_numpy(np.stack([np.arange(length) < len(d) for _, d, _ in items])),
+        part=torch.tensor([i for i, _ in items]),
+        depth=torch.from_numpy(np.stack([pad(p.depth) for _, p in items])).float(),
+        force=torch.from_numpy(np.stack([pad(p.force) for _, p in items])).float(),
+        mask=torch.from_numpy(np.stack([np.arange(length) < len(p.depth) for _, p in items])),
+        dt=sample_period(items[0][1]),
     )
+
+
+def part_batch(part: PartData, row: int) -> TrialBatch:
+    """All trials of one part, padded, tagged with the part's latent row."""
+    return collate_trials([(row, p) for p in part.profiles])
+
+
+def unpad(values: np.ndarray, part: PartData) -> list[np.ndarray]:
+    """Rows of a padded (trials, T) array cut back to each of the part's trials' own length."""
+    return [values[i, : len(p.force)] for i, p in enumerate(part.profiles)]
 
 
 def cloud_loader(parts: list[PartData], batch_size: int, shuffle: bool, seed: int) -> DataLoader:

@@ -1,0 +1,78 @@
+"""The two Hydra applications, `train` and `predict`, on the configs that ship in the package (pipe.conf).
+
+The repository's `train.py` and `predict.py` and the installed `pipe-train` and `pipe-predict` commands
+all run these. Paths (data, outputs, the MLflow store) resolve from `PROJECT_ROOT`: the repository root
+for the scripts, the current folder for the installed commands.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from hydra_plugins.pipe_searchpath import PIPE_CONFIG, register
+
+register()   # installed plugins' configs join the search path, in editable installs too
+
+
+@hydra.main(version_base="1.3", config_path=PIPE_CONFIG, config_name="config")
+def _train(cfg: DictConfig) -> None:
+    from rich.table import Table
+
+    from pipe.cli import console, fail
+    from pipe.errors import PipeError
+    from pipe.pipeline import results_rows, run_domain
+
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # device banners and tips, twice
+    try:
+        result = run_domain(cfg)
+    except PipeError as err:
+        sys.exit(fail(str(err)))
+    table = Table("method", "test part", "FIT(F) [%]", "FIT(dF/dt) [%]", "rms [N]", "rms_rel",
+                  title=f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
+                        f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
+    for row in results_rows(result):
+        table.add_row(*row)
+    console.print(table)
+    console.print(f"stage 1 {result.seconds['vae']:.0f} s, stage 2 {result.seconds['head']:.0f} s, "
+                  f"evaluation {result.seconds['evaluation']:.0f} s; results in {result.run_dir}")
+    if result.mlflow_run_id:
+        console.print(f"MLflow run {result.mlflow_run_id} (`mlflow ui` from the project root); predict with: "
+                      f"python predict.py mesh=<part.stl> run={result.mlflow_run_id}")
+
+
+@hydra.main(version_base="1.3", config_path=PIPE_CONFIG, config_name="predict")
+def _predict(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    from pipe.cli import console, fail
+    from pipe.errors import PipeError
+    from pipe.predict import predict, write_prediction
+
+    try:
+        prediction = predict(cfg)
+    except PipeError as err:
+        sys.exit(fail(str(err)))
+    out = Path(HydraConfig.get().runtime.output_dir)
+    write_prediction(prediction, out, Path(cfg.mesh), str(cfg.run))
+    for note in prediction.notes:
+        console.print(note)
+    console.print(f"peak force {prediction.force.max():.2f} N, final {prediction.force[-1]:.2f} N; "
+                  f"theta.csv, theta.json, force.csv and prediction.png in {out}")
+
+
+def train() -> None:
+    """Train PIPE on one domain (see conf/config.yaml), e.g. `encoder=pointnet model=mds2 domain=conn`."""
+    os.environ.setdefault("PROJECT_ROOT", os.getcwd())
+    _train()
+
+
+def predict() -> None:
+    """Predict a new part's Theta(p_z) and force (see conf/predict.yaml): `mesh=part.stl run=<run id>`."""
+    os.environ.setdefault("PROJECT_ROOT", os.getcwd())
+    _predict()

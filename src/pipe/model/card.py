@@ -1,0 +1,70 @@
+"""The model card: what prediction needs besides the weights, written with the model and read back typed.
+
+It travels as the MLflow model's metadata. `CARD_VERSION` changes whenever a field changes meaning or is
+added or removed; a card of another version is refused with a message saying what to do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+from pipe import __version__
+from pipe.errors import PipeError
+
+CARD_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Units:
+    """Units of the model's inputs and outputs."""
+
+    length: str = "mm"   # point clouds, depth p_z, train_size_mm
+    force: str = "N"
+    time: str = "s"
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    domain: str                          # the domain the model was trained on
+    points: int                          # points per cloud (Poisson-disk sampling)
+    cloud_seed: int                      # seed of the sampling
+    rate_hz: float                       # sample rate of the training profiles
+    parameter_names: tuple[str, ...]     # Theta's parameters, in the dynamic model's order
+    train_parts: tuple[str, ...]
+    train_size_mm: tuple[float, float]   # smallest and largest extent of the training parts' clouds
+    depth_scale_mm: float                # typical insertion depth of the training trials
+    force_scale_n: float                 # typical peak force of the training trials
+    units: Units = field(default_factory=Units)
+    pipe_version: str = __version__
+    card_version: int = CARD_VERSION
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON/YAML types, as MLflow stores model metadata."""
+        doc = asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in doc.items()}
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any] | None, source: str) -> ModelCard:
+        """Read a card back; refuse one of another version, or one that lacks or mistypes a field."""
+        doc = dict(doc or {})
+        version = doc.get("card_version")
+        if version != CARD_VERSION:
+            logged = f"model card version {version}" if version is not None else "no pipe model card"
+            raise PipeError(f"the model at {source} has {logged} (logged by pipe {doc.get('pipe_version', '< 0.2')}), "
+                            f"but this pipe {__version__} reads version {CARD_VERSION}: retrain the model with this "
+                            "version, or predict with the pipe version that trained it")
+        names = {f.name for f in fields(cls)}
+        missing, unknown = sorted(names - set(doc)), sorted(set(doc) - names)
+        if missing or unknown:
+            raise PipeError(f"the model card at {source} is broken: missing {missing}, unknown {unknown}")
+        try:
+            return cls(
+                domain=str(doc["domain"]), points=int(doc["points"]), cloud_seed=int(doc["cloud_seed"]),
+                rate_hz=float(doc["rate_hz"]), parameter_names=tuple(str(n) for n in doc["parameter_names"]),
+                train_parts=tuple(str(n) for n in doc["train_parts"]),
+                train_size_mm=(float(doc["train_size_mm"][0]), float(doc["train_size_mm"][1])),
+                depth_scale_mm=float(doc["depth_scale_mm"]), force_scale_n=float(doc["force_scale_n"]),
+                units=Units(**doc["units"]), pipe_version=str(doc["pipe_version"]), card_version=int(version))
+        except (TypeError, ValueError, IndexError, KeyError) as exc:
+            raise PipeError(f"the model card at {source} is broken ({type(exc).__name__}: {exc})") from None

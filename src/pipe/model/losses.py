@@ -1,0 +1,16 @@
+"""Losses of the two training stages that are not point-cloud distances (those are in `chamfer`)."""
+
+from __future__ import annotations
+
+import torch
+
+
+def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Paper: L_reg = e^T e / n over the real (unpadded) samples."""
+    err = (pred - target)[mask]
+    return err.pow(2).mean()
+
+
+def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
+    """KL(q(z|x) || N(0, I)) per cloud, summed over the latent dimensions: (B,)."""
+    return -0.5 * torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=-1)

@@ -1,0 +1,55 @@
+"""Fitting the two stages with Lightning: stage 1 the VAE on the training clouds, stage 2 the head through
+the dynamic model on the training trials; the validation parts select each stage's best checkpoint."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+from lightning.pytorch.loggers import Logger
+from omegaconf import DictConfig
+from torch.utils.data import DataLoader
+
+from pipe.data.batches import cloud_loader, trial_loader
+from pipe.data.prepared import PartData
+from pipe.model.pipe_model import PIPEModel
+from pipe.model.vae import PointCloudVAE
+from pipe.training.stages import HeadStage, VAEStage
+from pipe.training.trainer import make_trainer
+
+
+def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, val: DataLoader | None,
+              run_dir: Path, stage: str, resume: bool) -> float:
+    """Fit (when resuming, from the stage's last checkpoint if it has one), then load the best weights;
+    the seconds it took."""
+    last = run_dir / "checkpoints" / stage / "last.ckpt"
+    start = time.perf_counter()
+    trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
+    best = trainer.checkpoint_callback.best_model_path
+    if best:
+        module.load_state_dict(torch.load(best, map_location="cpu", weights_only=True)["state_dict"])
+    return time.perf_counter() - start
+
+
+def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val: list[PartData], run_dir: Path,
+            resume: bool, loggers: list[Logger]) -> float:
+    """Stage 1 (`cfg.stages.vae`): the encoder learns to reconstruct the training clouds."""
+    stage = cfg.stages.vae
+    trainer = make_trainer(cfg.trainer, run_dir, "vae", stage.epochs, bool(val), loggers)
+    return fit_stage(trainer, VAEStage(encoder, lr=stage.lr, kl_weight=stage.kl_weight),
+                     cloud_loader(train, stage.batch_size, True, cfg.seed),
+                     cloud_loader(val, stage.batch_size, False, cfg.seed) if val else None, run_dir, "vae", resume)
+
+
+def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: dict[str, int], train: list[PartData],
+             val: list[PartData], run_dir: Path, resume: bool, loggers: list[Logger]) -> float:
+    """Stage 2 (`cfg.stages.head`): the encoder frozen, the head learns the training trials' force through
+    the dynamic model; `latents` holds the parts' codes at the rows `index` gives."""
+    stage = cfg.stages.head
+    trainer = make_trainer(cfg.trainer, run_dir, "head", stage.epochs, bool(val), loggers)
+    return fit_stage(trainer, HeadStage(model, latents, lr=stage.lr),
+                     trial_loader(train, index, stage.batch_size, True, cfg.seed),
+                     trial_loader(val, index, stage.batch_size, False, cfg.seed) if val else None,
+                     run_dir, "head", resume)
