@@ -118,6 +118,15 @@ def test_check_collects_every_problem(dataset_copy):
     assert report.parts == []  # neither part is summarised while it has a problem
 
 
+def test_check_warns_when_trials_contradict_the_declared_sample_rate(dataset_copy):
+    spec = yaml.safe_load((dataset_copy / "dataset.yaml").read_text())
+    assert spec["sample_rate_hz"] == 500 and check_dataset(dataset_copy).warnings == []
+    write_spec(dataset_copy, **(spec | {"sample_rate_hz": 125}))   # the synthetic trials are at 500 Hz
+    report = check_dataset(dataset_copy)
+    assert report.ok and len(report.warnings) == 20                 # every trial of both parts, yet valid
+    assert "sampled at 500 Hz, but dataset.yaml declares sample_rate_hz: 125" in str(report.warnings[0])
+
+
 def test_unknown_part_is_refused(small_dataset):
     with pytest.raises(DatasetError, match="unknown part"):
         load_dataset(small_dataset, parts=["dsub9", "nope"])

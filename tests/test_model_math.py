@@ -92,6 +92,28 @@ def test_mds2_settles_at_the_static_force():
     assert force[0, -1].item() == pytest.approx(5.0 / 2.0 * 8.0, rel=1e-6)
 
 
+@pytest.mark.parametrize("model, theta", [(MDS2(), [1e-4, 0.02, 2.0, 5.0]), (MDS1(), [0.02, 2.0, 5.0])])
+def test_static_force_from_the_state_space_is_b0_over_a2(model, theta):
+    """The base class solves 0 = A x + B p for the steady state; by hand both models give F = b0 / a2 p."""
+    depth = torch.tensor([[0.0, 1.0, 2.5, 8.0]])
+    static = model.static_force(torch.tensor(theta).expand(1, 4, -1), depth)
+    np.testing.assert_allclose(static.numpy(), 2.5 * depth.numpy(), rtol=1e-12)
+
+
+def test_a_model_with_another_head_shares_everything_else():
+    from pipe.model.pipe_model import PIPEModel
+    from pipe.plugins.encoder.pointnet import PointNetVAE
+
+    torch.manual_seed(0)
+    model = PIPEModel(PointNetVAE(num_points=32), GaussianHead(32, 4), MDS2(), force_scale=10.0, depth_scale=5.0)
+    other = model.with_head(GaussianHead(32, 4))
+    assert other.encoder is model.encoder and other.dynamics is model.dynamics
+    assert torch.equal(other.theta_scale, model.theta_scale) and other.head is not model.head
+    z, depth = torch.randn(2, 32), torch.linspace(0, 5, 50).expand(2, -1)
+    other.head.load_state_dict(model.head.state_dict())
+    torch.testing.assert_close(other(z, depth, 0.01), model(z, depth, 0.01))
+
+
 def test_solver_is_differentiable():
     times = np.arange(0, 0.5, 0.01)
     theta = torch.tensor([1e-4, 0.02, 2.0, 5.0]).expand(2, len(times), 4).clone().requires_grad_()

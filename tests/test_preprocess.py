@@ -9,7 +9,14 @@ from scipy.spatial import cKDTree
 
 from pipe.data.dataset import Trial, zero_start
 from pipe.data.mesh import load_mesh
-from pipe.data.preprocess import append_steady_state, preprocess_trial, resample, sample_point_cloud, volume_centre
+from pipe.data.preprocess import (
+    append_steady_state,
+    cloud_from_mesh,
+    preprocess_trial,
+    resample,
+    sample_point_cloud,
+    volume_centre,
+)
 from pipe.errors import DatasetError
 
 # Known sizes of the real meshes, in mm, sorted (shared/real-meshes/SOURCES.md).
@@ -75,6 +82,15 @@ def test_point_cloud_is_deterministic_per_seed():
     a, b = (sample_point_cloud(mesh, 256, seed=7).points for _ in range(2))
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, sample_point_cloud(mesh, 256, seed=8).points)
+
+
+def test_cloud_from_mesh_is_the_whole_chain_and_says_what_it_read(tmp_path):
+    path = tmp_path / "box_in_metres.stl"
+    trimesh.creation.box(extents=(0.01, 0.02, 0.04)).export(path)
+    cloud = cloud_from_mesh(path, "auto", 128, seed=3)
+    assert (cloud.mesh.units, cloud.mesh.extent_mm, cloud.mesh.watertight) == ("m", pytest.approx(40.0), True)
+    np.testing.assert_array_equal(cloud.points, sample_point_cloud(load_mesh(path, "m"), 128, seed=3).points)
+    np.testing.assert_allclose(np.ptp(cloud.points, axis=0), [10.0, 20.0, 40.0], rtol=0.05)
 
 
 def test_load_mesh_refuses_a_missing_file(tmp_path):

@@ -6,10 +6,14 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from pipe.data.dataset import find_mesh, load_trial, part_dirs, trial_paths
 from pipe.data.mesh import load_mesh
 from pipe.data.spec import load_spec
 from pipe.errors import DatasetError
+
+RATE_TOLERANCE = 0.1   # a trial's median sample rate may differ this much from the declared one
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,11 @@ def _check_part(part_dir: Path, spec, report: CheckReport) -> None:
             report.warnings.append(DatasetError(
                 "force is mostly negative: pipe expects F_z positive when it resists insertion; "
                 "set 'sign: {force: -1}' in dataset.yaml if your sensor reports it negative", path))
+        rate = 1.0 / float(np.median(np.diff(trial.time)))
+        if spec.sample_rate_hz and abs(rate / spec.sample_rate_hz - 1.0) > RATE_TOLERANCE:
+            report.warnings.append(DatasetError(
+                f"sampled at {rate:.4g} Hz, but dataset.yaml declares sample_rate_hz: {spec.sample_rate_hz:g}; "
+                "check the time column's unit (seconds) or the declared rate", path))
         trials.append(trial)
     if len(report.problems) > problems_before or mesh is None:
         return
