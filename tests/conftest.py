@@ -43,6 +43,21 @@ def real_meshes() -> list[Path]:
     return sorted(p for p in REAL_MESHES.iterdir() if p.suffix.lower() in (".stl", ".obj"))
 
 
+MEANPOOL_ENCODER = '''"""A throwaway encoder plugin: one linear layer per point, mean pooled."""
+import torch
+
+from pipe.model.vae import PointCloudVAE
+
+
+class MeanPoolVAE(PointCloudVAE):
+    def __init__(self, width: int = 16, **vae):
+        super().__init__(feature_dim=width, **vae)
+        self.point = torch.nn.Linear(3, width)
+
+    def features(self, points):
+        return torch.relu(self.point(points)).mean(dim=1)
+'''
+
 TINY_DOMAIN = ["domain.name=tiny", "domain.train=[dsub9,dsub15]", "domain.val=[vga]", "domain.test=[dsub26]"]
 
 

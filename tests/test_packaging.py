@@ -5,13 +5,14 @@ a checkout (non-editable), trains with its built-in plugins and configs."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, TINY_DOMAIN
+from conftest import MEANPOOL_ENCODER, ROOT, TINY_DOMAIN
 
 PLUGIN_FILES = {
     "pyproject.toml": '''
@@ -36,20 +37,7 @@ PLUGIN_FILES = {
         """A throwaway pipe plugin: the meanpool encoder and the zero baseline."""
         from my_pipe_plugin import baselines  # noqa: F401  (registers the baseline)
     ''',
-    "my_pipe_plugin/encoder.py": '''
-        import torch
-        from pipe.model.vae import PointCloudVAE
-
-        class MeanPoolVAE(PointCloudVAE):
-            """One linear layer per point, mean pooled."""
-
-            def __init__(self, width: int = 16, **vae):
-                super().__init__(feature_dim=width, **vae)
-                self.point = torch.nn.Linear(3, width)
-
-            def features(self, points):
-                return torch.relu(self.point(points)).mean(dim=1)
-    ''',
+    "my_pipe_plugin/encoder.py": MEANPOOL_ENCODER,
     "my_pipe_plugin/baselines.py": '''
         import numpy as np
         from pipe.evaluation.methods import METHODS, Method
@@ -108,8 +96,13 @@ def test_an_installed_plugin_package_trains_with_its_encoder_and_baseline(tiny_d
 
 @pytest.mark.slow
 def test_pipe_installed_without_a_checkout_trains_with_its_builtin_plugins(tiny_data, tmp_path):
-    site = tmp_path / "site"
-    pip("install", "--no-deps", "--no-build-isolation", "--target", str(site), str(ROOT))
+    source, site = tmp_path / "source", tmp_path / "site"
+    source.mkdir()   # a copy: the checkout's build/ folder of earlier builds could leak stale files
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, source / name)
+    for name in ("src", "plugins", "conf"):
+        shutil.copytree(ROOT / name, source / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    pip("install", "--no-deps", "--no-build-isolation", "--target", str(site), str(source))
     for shipped in ("pipe/plugins/encoder/pointnet.py", "pipe/plugins/model/mds2.py", "pipe/conf/config.yaml",
                     "pipe/conf/encoder/dgcnn.yaml", "hydra_plugins/pipe_searchpath/__init__.py"):
         assert (site / shipped).is_file(), shipped

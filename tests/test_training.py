@@ -7,12 +7,11 @@ import json
 import os
 import subprocess
 import sys
-import textwrap
 
 import numpy as np
 import pytest
 import torch
-from conftest import ROOT, TINY_DOMAIN, smoke_config
+from conftest import MEANPOOL_ENCODER, ROOT, TINY_DOMAIN, smoke_config
 from conftest import compose_config as config
 
 from pipe.pipeline import build_components, run_domain
@@ -116,20 +115,7 @@ def test_a_plugin_in_another_folder_trains_without_editing_the_core(tiny_data, t
     package.mkdir(parents=True)
     (tmp_path / "my_plugins" / "__init__.py").write_text("")
     (package / "__init__.py").write_text("")
-    (package / "meanpool.py").write_text(textwrap.dedent('''
-        import torch
-        from pipe.model.vae import PointCloudVAE
-
-        class MeanPoolVAE(PointCloudVAE):
-            """Throwaway encoder: one linear layer per point, mean pooled."""
-
-            def __init__(self, width: int = 16, **vae):
-                super().__init__(feature_dim=width, **vae)
-                self.point = torch.nn.Linear(3, width)
-
-            def features(self, points):
-                return torch.relu(self.point(points)).mean(dim=1)
-    '''))
+    (package / "meanpool.py").write_text(MEANPOOL_ENCODER)
     conf = tmp_path / "conf" / "encoder"
     conf.mkdir(parents=True)
     (conf / "meanpool.yaml").write_text("_target_: my_plugins.encoder.meanpool.MeanPoolVAE\nlatent_dim: 32\nwidth: 8\n")
@@ -153,7 +139,7 @@ def test_the_readme_plugin_example_trains(tiny_data, tmp_path):
     (package / "mymodel.py").write_text(module.removeprefix("python\n"))
     (tmp_path / "conf" / "model").mkdir(parents=True)
     (tmp_path / "conf" / "model" / "mymodel.yaml").write_text(
-        conf.removeprefix("yaml\n").replace("plugins.model.mymodel", "readme_plugins.model.mymodel"))
+        conf.removeprefix("yaml\n").replace("pipe.plugins.model.mymodel", "readme_plugins.model.mymodel"))
     result = run_train("experiment=smoke", "model=mymodel", f"hydra.searchpath=[file://{tmp_path / 'conf'}]",
                        f"data.dir={tiny_data}", f"hydra.run.dir={tmp_path / 'run'}", *TINY_DOMAIN,
                        env={"PYTHONPATH": str(tmp_path)})
