@@ -23,7 +23,6 @@ from pipe.data.mesh import load_mesh
 class MeshInfo:
     """What a point cloud was sampled from."""
 
-    path: Path
     units: str          # the length unit the file was read in (stated, or guessed from its size)
     extent_mm: float    # the mesh's largest bounding-box extent
     watertight: bool
@@ -85,7 +84,7 @@ def cloud_from_mesh(path: str | Path, units: str = "mm", points: int = 1024, see
     file in mm (`units` its length unit, or "auto"), sample `points` points, centre them."""
     mesh = load_mesh(path, units)
     cloud = sample_point_cloud(mesh, points, seed=seed)
-    info = MeshInfo(Path(path), mesh.metadata["file_units"], float(mesh.extents.max()), bool(mesh.is_watertight))
+    info = MeshInfo(mesh.metadata["file_units"], float(mesh.extents.max()), bool(mesh.is_watertight))
     return replace(cloud, mesh=info)
 
 
