@@ -12,7 +12,8 @@ from pipe.data.preprocess import PointCloud, Profile
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
-from pipe.evaluation.methods import METHODS, identify
+from pipe.evaluation.identification import identify
+from pipe.evaluation.methods import METHODS
 from pipe.model.pipe_model import PIPEModel
 from pipe.plugins.encoder.pointnet import PointNetVAE
 from pipe.plugins.head.gaussian import GaussianHead
@@ -54,6 +55,27 @@ def test_oracle_recovers_the_simulating_parameters(ctx):
     np.testing.assert_allclose(static, [4.0, 8.0, 12.0], rtol=0.03)   # the static gain b0 / a2 = 2
 
 
+def test_identifying_parts_together_equals_one_by_one(ctx):
+    """One Adam over all heads with the summed per-part losses takes each part's own steps; the trials of
+    different lengths are padded to one batch and masked."""
+    context, test = ctx
+    context.settings["oracle_steps"] = 15
+    short = part("s", 1.5, trials=2)
+    short.profiles[:] = [Profile(TIME[:120], DEPTH[:120], p.force[:120]) for p in short.profiles]
+    context.index["s"] = 2
+    parts = [*context.train, test, short]
+    together = identify(context, parts)
+    alone = []
+    for p in parts:
+        context.cache.clear()
+        alone.append(identify(context, [p])[0])
+    for a, b in zip(together, alone):
+        for (name, x), y in zip(a.head.state_dict().items(), b.head.state_dict().values()):
+            torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6, msg=name)
+    for fitted in together:                                                                   # they moved
+        assert not torch.equal(fitted.head.amplitude[-1].bias, context.model.head.amplitude[-1].bias)
+
+
 def test_nearest_uses_the_closest_training_part(ctx):
     context, test = ctx
     got = METHODS["nearest"]().predict(context, test)[0]      # latent 0.45 is nearer to a (0) than to b (1)
@@ -69,7 +91,7 @@ def test_gpr_reproduces_a_training_part_at_its_own_latent(ctx):
     gpr = METHODS["gpr"]()
     gpr.fit(context)
     train_a = context.train[0]
-    identified = identify(context, train_a)
+    identified = identify(context, [train_a])[0]
     depth = np.array([1.5, 3.0, 4.5, 6.0])
     theta_gpr = gpr._theta(context, train_a, depth, 6.0)
     theta_id = identified.profile(context.latent(train_a)[None], torch.tensor([6.0]))(

@@ -132,6 +132,25 @@ def test_chamfer_matches_brute_force():
         assert mean_nearest_distance(torch.tensor(x), torch.tensor(y))[b].item() == pytest.approx(mean_nn)
 
 
+def test_chamfer_gradient_matches_brute_force():
+    """By hand: d/dx_i of min_j ||x_i - y_j||^2 is 2 (x_i - y_nn(i)); each y_j that is the nearest of x_i gets
+    -2 (x_i - y_j); the other direction likewise."""
+    rng = np.random.default_rng(1)
+    x, y = rng.normal(size=(1, 40, 3)), rng.normal(size=(1, 60, 3))
+    d = ((x[0][:, None] - y[0][None]) ** 2).sum(-1)
+    gx, gy = np.zeros_like(x[0]), np.zeros_like(y[0])
+    for i, j in enumerate(d.argmin(1)):
+        gx[i] += 2 * (x[0, i] - y[0, j])
+        gy[j] -= 2 * (x[0, i] - y[0, j])
+    for j, i in enumerate(d.argmin(0)):
+        gy[j] += 2 * (y[0, j] - x[0, i])
+        gx[i] -= 2 * (y[0, j] - x[0, i])
+    xt, yt = torch.tensor(x, requires_grad=True), torch.tensor(y, requires_grad=True)
+    chamfer(xt, yt).sum().backward()
+    np.testing.assert_allclose(xt.grad[0].numpy(), gx, rtol=1e-10)
+    np.testing.assert_allclose(yt.grad[0].numpy(), gy, rtol=1e-10)
+
+
 def test_chamfer_is_zero_for_identical_clouds():
     x = torch.randn(1, 30, 3)
     assert chamfer(x, x[:, torch.randperm(30)]).item() == pytest.approx(0.0, abs=1e-12)

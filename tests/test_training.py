@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -58,12 +59,29 @@ def test_same_seed_same_metrics(tiny_data, tmp_path):
 
 
 def test_a_run_resumes_from_its_last_checkpoints(tiny_data, tmp_path):
-    last_epoch = lambda stage: torch.load(tmp_path / f"checkpoints/{stage}/last.ckpt", weights_only=False)["epoch"]  # noqa: E731
+    """The last checkpoint written at a stage's end records the epochs done; resume trains only the rest."""
+    last = lambda stage: torch.load(tmp_path / f"checkpoints/{stage}/last.ckpt", weights_only=False)  # noqa: E731
     run_domain(smoke_config(tiny_data, tmp_path))
-    assert last_epoch("head") == 1                          # Lightning counts epochs from 0
+    assert last("head")["epoch"] == 2
+    steps = last("head")["global_step"]
     run_domain(smoke_config(tiny_data, tmp_path / "ignored", f"resume={tmp_path}", "stages.head.epochs=4"))
-    assert last_epoch("head") == 3 and last_epoch("vae") == 1  # stage 2 went on, stage 1 was not retrained
+    assert last("head")["epoch"] == 4 and last("head")["global_step"] == 2 * steps   # two more epochs
+    assert last("vae")["epoch"] == 2                                                  # stage 1 not retrained
     assert not (tmp_path / "ignored").exists()
+
+
+def test_checkpoints_last_at_the_interval_and_the_end_best_weights_only(tiny_data, tmp_path, monkeypatch):
+    import lightning as L
+
+    saved = []
+    original = L.Trainer.save_checkpoint
+    monkeypatch.setattr(L.Trainer, "save_checkpoint", lambda self, path, *a, **k: saved.append(
+        (Path(path).parent.name, Path(path).name, self.current_epoch)) or original(self, path, *a, **k))
+    run_domain(smoke_config(tiny_data, tmp_path, "stages.vae.epochs=5", "trainer.checkpoint_every=2"))
+    last_vae = [epoch for stage, name, epoch in saved if (stage, name) == ("vae", "last.ckpt")]
+    assert last_vae == [1, 3, 5]           # after epochs 2 and 4 (counted from 0: 1, 3), and at the end
+    best = torch.load(tmp_path / "checkpoints/vae/best.ckpt", weights_only=False)
+    assert "state_dict" in best and "optimizer_states" not in best
 
 
 def test_a_new_run_never_reuses_or_overwrites_checkpoints(tiny_data, tmp_path):

@@ -27,6 +27,7 @@ from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import MethodResult, evaluate_methods, reconstruction_metrics
 from pipe.evaluation.report import write_report
+from pipe.model import ltv
 from pipe.model.card import ModelCard
 from pipe.model.interfaces import DynamicModel, ParameterHead
 from pipe.model.pipe_model import PIPEModel
@@ -115,6 +116,7 @@ def run_domain(cfg: DictConfig) -> RunResult:
     if not resume and any((run_dir / "checkpoints").glob("*/*.ckpt")):
         raise PipeError("already holds the checkpoints of an earlier run; continue it with resume=<this folder> "
                         "or choose another hydra.run.dir", run_dir)
+    ltv.set_backend(cfg.simulator)
     run_dir.mkdir(parents=True, exist_ok=True)
     L.seed_everything(cfg.seed, workers=True)
     data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)

@@ -55,7 +55,7 @@ def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -
     for name in names:
         method = METHODS[name]()
         method.fit(ctx)
-        forces = {part.name: method.predict(ctx, part) for part in test}
+        forces = method.predict_all(ctx, test)
         per_part = {part.name: score(method, ctx, part, forces[part.name]) for part in test}
         results[name] = MethodResult(per_part, mean_metrics(list(per_part.values())), forces)
     return results

@@ -2,8 +2,8 @@
 
 - pipe:     the trained model, from the part's latent code.
 - oracle:   the same dynamic model and profile structure fitted to the test part's own recordings
-            (classical system identification, warm-started from PIPE): an upper bound, since it uses the
-            recordings PIPE does not need.
+            (classical system identification, warm-started from PIPE, `pipe.evaluation.identification`):
+            an upper bound, since it uses the recordings PIPE does not need.
 - nearest:  PIPE's parameters for the training part nearest in latent space.
 - gpr:      Gaussian-process regression from the latent code to the identified parameter profiles of the
             training parts (each identified like the oracle), the task-parameterised approach.
@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import copy
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -25,6 +24,7 @@ from torch import nn
 from pipe.data.batches import unpad
 from pipe.data.prepared import PartData
 from pipe.evaluation.context import EvalContext
+from pipe.evaluation.identification import identify
 from pipe.model.pipe_model import PIPEModel
 from pipe.registry import Registry
 
@@ -44,6 +44,10 @@ class Method(ABC):
     @abstractmethod
     def predict(self, ctx: EvalContext, part: PartData) -> list[np.ndarray]:
         """Predicted force [N] of each of the part's trials, on the trial's own samples."""
+
+    def predict_all(self, ctx: EvalContext, parts: list[PartData]) -> dict[str, list[np.ndarray]]:
+        """`predict` for every part; override to share work between the parts (e.g. one batched fit)."""
+        return {part.name: self.predict(ctx, part) for part in parts}
 
     def static_force(self, ctx: EvalContext, part: PartData, depth_max: float,
                      depth: np.ndarray) -> np.ndarray | None:
@@ -78,34 +82,19 @@ class PIPE(Method):
         return model_static_force(ctx.model, ctx.latent(part), depth_max, depth)
 
 
-def identify(ctx: EvalContext, part: PartData) -> PIPEModel:
-    """System identification of one part: the head's profile structure fitted to the part's own trials
-    (its latent code fixed), starting from PIPE's head. Cached per part in the context."""
-    fits = ctx.cache.setdefault("identified", {})
-    if part.name not in fits:
-        model = ctx.model.with_head(copy.deepcopy(ctx.model.head).train())
-        batch, z = ctx.batch(part), ctx.latent(part)
-        optimiser = torch.optim.Adam(model.head.parameters(), lr=ctx.settings.get("oracle_lr", 1e-3))
-        with torch.enable_grad():
-            for _ in range(ctx.settings.get("oracle_steps", 200)):
-                optimiser.zero_grad()
-                loss = model.loss(z.expand(len(batch.part), -1), batch)
-                loss.backward()
-                optimiser.step()
-        model.head.eval().requires_grad_(False)
-        fits[part.name] = model
-    return fits[part.name]
-
-
 @METHODS.register
 class Oracle(Method):
     name = "oracle"
 
+    def predict_all(self, ctx, parts):
+        identify(ctx, parts)       # all test parts in one batched fit
+        return super().predict_all(ctx, parts)
+
     def predict(self, ctx, part):
-        return model_forces(ctx, identify(ctx, part), ctx.latent(part), part)
+        return model_forces(ctx, identify(ctx, [part])[0], ctx.latent(part), part)
 
     def static_force(self, ctx, part, depth_max, depth):
-        return model_static_force(identify(ctx, part), ctx.latent(part), depth_max, depth)
+        return model_static_force(identify(ctx, [part])[0], ctx.latent(part), depth_max, depth)
 
 
 @METHODS.register
@@ -132,11 +121,11 @@ class GPR(Method):
 
     def fit(self, ctx):
         rows, targets = [], []
-        for part in ctx.train:
+        for part, identified in zip(ctx.train, identify(ctx, ctx.train)):
             z = ctx.latent(part)
             depth_max = float(np.mean([np.abs(p.depth).max() for p in part.profiles]))
             depth = torch.tensor(self.grid * depth_max, dtype=torch.float32)[None]
-            theta = identify(ctx, part).profile(z[None], torch.tensor([depth_max]))(depth)   # (1, G, P)
+            theta = identified.profile(z[None], torch.tensor([depth_max]))(depth)   # (1, G, P)
             rows.append(z.numpy())
             targets.append(np.log(theta[0].numpy()).T.ravel())
         x = np.stack(rows)

@@ -3,23 +3,97 @@
 Over each sample period the parameters and the input are held at their midpoint values and the step is
 solved exactly with the matrix exponential (zero-order hold on the midpoint). For a Hurwitz A (all
 positive coefficients of a mass-spring-damper) the step matrix has spectral radius below one whatever the
-stiffness, so the recursion cannot blow up; it is differentiable and batched. The recursion itself is a
-short loop over time with (n x n) products.
+stiffness, so the recursion cannot blow up; it is differentiable and batched.
+
+Two implementations give the same numbers (tests/test_simulator.py):
+- "compiled" (`pipe.model.ltv_numba`): numba kernels with exact adjoint backward passes; CPU tensors;
+- "torch": `torch.linalg.matrix_exp` and a Python loop over time; any device, the reference.
+The backend is "auto" by default (compiled for CPU tensors when numba imports, torch otherwise); choose
+one with `set_backend`, the `PIPE_SIMULATOR` environment variable or train.py's `simulator=` option.
 """
 
 from __future__ import annotations
 
+import os
+from functools import cache
+from types import ModuleType
+
 import torch
+
+from pipe.errors import PipeError
+
+BACKENDS = ("auto", "compiled", "torch")
+_COMPILED_DTYPES = (torch.float32, torch.float64)
+_backend = os.environ.get("PIPE_SIMULATOR", "auto")
+
+
+def set_backend(name: str) -> None:
+    """Choose the simulator: "auto", "compiled" (fails if numba is missing) or "torch"."""
+    global _backend
+    if name not in BACKENDS:
+        raise PipeError(f"unknown simulator {name!r}; choose one of {', '.join(BACKENDS)}")
+    if name == "compiled" and _compiled() is None:
+        raise PipeError("simulator=compiled needs numba (pip install numba); simulator=torch works without it")
+    _backend = name
+
+
+def get_backend() -> str:
+    return _backend
+
+
+@cache
+def _compiled() -> ModuleType | None:
+    """The numba kernels, imported (and compiled from numba's cache) on first use; None without numba."""
+    try:
+        from pipe.model import ltv_numba
+    except ImportError:
+        return None
+    return ltv_numba
+
+
+def _use_compiled(*tensors: torch.Tensor) -> bool:
+    """Compiled for CPU float32/float64 tensors unless "torch" is chosen; a CUDA tensor takes the torch path."""
+    if _backend == "torch" or any(t.device.type != "cpu" or t.dtype not in _COMPILED_DTYPES for t in tensors):
+        return False
+    if len({t.dtype for t in tensors}) != 1:
+        return False
+    return _compiled() is not None
 
 
 def discretize(a: torch.Tensor, b: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
     """A (..., n, n), B (..., n) -> Phi = exp(A dt) (..., n, n), Gamma = int_0^dt exp(A s) ds B (..., n)."""
+    if _use_compiled(a, b):
+        return _compiled().CompiledDiscretize.apply(a, b, dt)
+    return discretize_torch(a, b, dt)
+
+
+def discretize_torch(a: torch.Tensor, b: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """`discretize` through the exponential of the augmented matrix dt [[A, B], [0, 0]]."""
     n = a.shape[-1]
     augmented = torch.zeros(*a.shape[:-2], n + 1, n + 1, dtype=a.dtype, device=a.device)
     augmented[..., :n, :n] = a * dt
     augmented[..., :n, n] = b * dt
     step = torch.linalg.matrix_exp(augmented)
     return step[..., :n, :n], step[..., :n, n]
+
+
+def recurrence(phi: torch.Tensor, gamma: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """States (B, T + 1, n) of x_{k+1} = Phi_k x_k + Gamma_k u_k from x_0 = 0; Phi (B, T, n, n),
+    Gamma (B, T, n), u (B, T)."""
+    if _use_compiled(phi, gamma, u):
+        return _compiled().CompiledRecurrence.apply(phi, gamma, u)
+    return recurrence_torch(phi, gamma, u)
+
+
+def recurrence_torch(phi: torch.Tensor, gamma: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """`recurrence` as a Python loop over time (autograd records every step)."""
+    drive = gamma * u.unsqueeze(-1)
+    x = torch.zeros(u.shape[0], phi.shape[-1], dtype=phi.dtype, device=phi.device)
+    states = [x]
+    for k in range(u.shape[1]):
+        x = torch.einsum("bij,bj->bi", phi[:, k], x) + drive[:, k]
+        states.append(x)
+    return torch.stack(states, dim=1)
 
 
 def midpoints(x: torch.Tensor) -> torch.Tensor:
@@ -31,10 +105,4 @@ def simulate(a: torch.Tensor, b: torch.Tensor, u: torch.Tensor, dt: float) -> to
     """States (B, T, n) from zero initial state; A (B, T-1, n, n) and B (B, T-1, n) act over each period
     and u (B, T-1) is the input over it."""
     phi, gamma = discretize(a, b, dt)
-    drive = gamma * u.unsqueeze(-1)
-    x = torch.zeros(u.shape[0], a.shape[-1], dtype=a.dtype, device=a.device)
-    states = [x]
-    for k in range(u.shape[1]):
-        x = torch.einsum("bij,bj->bi", phi[:, k], x) + drive[:, k]
-        states.append(x)
-    return torch.stack(states, dim=1)
+    return recurrence(phi, gamma, u)

@@ -17,16 +17,18 @@ from pipe.data.prepared import PartData
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 from pipe.training.stages import HeadStage, VAEStage
-from pipe.training.trainer import make_trainer
+from pipe.training.trainer import checkpoint_dir, make_trainer
 
 
 def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, val: DataLoader | None,
               run_dir: Path, stage: str, resume: bool) -> float:
     """Fit (when resuming, from the stage's last checkpoint if it has one), then load the best weights;
     the seconds it took."""
-    last = run_dir / "checkpoints" / stage / "last.ckpt"
+    last = checkpoint_dir(run_dir, stage) / "last.ckpt"
     start = time.perf_counter()
     trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
+    if not trainer.fast_dev_run:
+        trainer.save_checkpoint(last)   # the end state, whatever checkpoint_every
     best = trainer.checkpoint_callback.best_model_path
     if best:
         module.load_state_dict(torch.load(best, map_location="cpu", weights_only=True)["state_dict"])

@@ -5,20 +5,34 @@ from __future__ import annotations
 from pathlib import Path
 
 import lightning as L
-from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, Logger
 from omegaconf import DictConfig
+
+from pipe.training.progress import RateProgressBar
+
+
+def checkpoint_dir(run_dir: Path, stage: str) -> Path:
+    return run_dir / "checkpoints" / stage
 
 
 def make_trainer(cfg: DictConfig, run_dir: Path, stage: str, epochs: int, has_val: bool,
                  loggers: list[Logger] = ()) -> L.Trainer:
-    """A Trainer that keeps the best (validation loss, else training loss) and the last checkpoint."""
+    """A Trainer with two checkpoints in checkpoints/<stage>/:
+
+    - best.ckpt: the weights only, written when the monitored loss (validation, else training) improves;
+    - last.ckpt: everything resume needs, every `cfg.checkpoint_every` epochs (`fit_stage` adds the end).
+    `trainer.checkpoint_callback` is the first of them, the best.
+    """
     monitor = f"{stage}/val_loss" if has_val else f"{stage}/train_loss"   # logged by the stage's module
-    checkpoint = ModelCheckpoint(dirpath=run_dir / "checkpoints" / stage, filename="best", monitor=monitor,
-                                 mode="min", save_last=True)
-    callbacks = [checkpoint]
+    folder = checkpoint_dir(run_dir, stage)
+    best = ModelCheckpoint(dirpath=folder, filename="best", monitor=monitor, mode="min", save_weights_only=True,
+                           enable_version_counter=False)
+    last = ModelCheckpoint(dirpath=folder, filename="last", every_n_epochs=cfg.checkpoint_every,
+                           enable_version_counter=False)
+    callbacks = [best, last]
     if cfg.progress_bar:
-        callbacks.append(RichProgressBar())
+        callbacks.append(RateProgressBar())
     return L.Trainer(
         max_epochs=epochs,
         accelerator=cfg.accelerator,
