@@ -216,15 +216,48 @@ def test_profile_stays_within_its_amplitudes():
     assert torch.all(theta >= low - 1e-9) and torch.all(theta <= high + 1e-9)
 
 
-def test_edgeconv_per_point_projection_equals_the_per_edge_convolution():
-    torch.manual_seed(0)
-    conv = EdgeConv(8, 16, k=5).eval()
-    x = torch.randn(2, 8, 40)
-    neighbours = gather_neighbours(x, knn(x, 5))
+def textbook_edgeconv(layer: EdgeConv, x: torch.Tensor) -> torch.Tensor:
+    """Wang et al.: the (B, 2C, n, k) edge features [x_i, x_j - x_i], convolved, batch-normed, activated, max."""
+    neighbours = gather_neighbours(x, knn(x, layer.k))
     centre = x.unsqueeze(-1).expand_as(neighbours)
-    edges = torch.nn.functional.conv2d(torch.cat([centre, neighbours - centre], 1), conv.weight.unsqueeze(-1))
-    expected = conv.act(conv.norm(edges)).max(-1).values
-    torch.testing.assert_close(conv(x), expected)
+    edges = torch.nn.functional.conv2d(torch.cat([centre, neighbours - centre], 1), layer.weight.unsqueeze(-1))
+    return layer.act(layer.norm(edges)).max(-1).values
+
+
+@pytest.mark.parametrize("training", [True, False])
+@pytest.mark.parametrize("kernel", ["numba", "torch"])
+def test_edgeconv_equals_the_textbook_per_edge_layer(training, kernel, monkeypatch):
+    """Output, every gradient and the batch norm's running statistics, with channels of both signs of the
+    batch-norm scale (a negative scale takes the min over the neighbours), with the compiled neighbour
+    search and with its torch fallback."""
+    import copy
+
+    from pipe.plugins.encoder import dgcnn
+
+    if kernel == "torch":
+        monkeypatch.setattr(dgcnn, "numba", None)
+    torch.manual_seed(0)
+    layer = EdgeConv(8, 16, k=5)
+    with torch.no_grad():
+        layer.norm.weight.copy_(torch.randn(16))
+        layer.norm.bias.copy_(torch.randn(16))
+        layer.norm.running_mean.copy_(torch.randn(16))
+        layer.norm.running_var.copy_(torch.rand(16) + 0.5)
+    reference = copy.deepcopy(layer)
+    layer.train(training)
+    reference.train(training)
+    x = (3.0 + torch.randn(2, 8, 40)).requires_grad_()
+    x_ref = x.detach().clone().requires_grad_()
+    weights = torch.randn(2, 16, 40)
+    got, expected = layer(x), textbook_edgeconv(reference, x_ref)
+    torch.testing.assert_close(got, expected)
+    (got * weights).sum().backward()
+    (expected * weights).sum().backward()
+    torch.testing.assert_close(x.grad, x_ref.grad)
+    for (name, p), q in zip(layer.named_parameters(), reference.parameters()):
+        torch.testing.assert_close(p.grad, q.grad, msg=name)
+    for (name, b), c in zip(layer.norm.named_buffers(), reference.norm.buffers()):
+        torch.testing.assert_close(b, c, msg=name)
 
 
 def test_knn_includes_the_point_itself_and_its_true_neighbours():

@@ -105,9 +105,15 @@ def sample_mesh(cfg: DictConfig, card: ModelCard) -> tuple[PointCloud, list[str]
     return cloud, notes + check_size(cloud.mesh.extent_mm, card, cfg.units, units, Path(cfg.mesh))
 
 
-@torch.no_grad()
 def predict(cfg: DictConfig) -> Prediction:
+    """Load the model `cfg.run` names, then `predict_with` it."""
     model, card = load_model(cfg.run, cfg.mlflow.tracking_uri, Path(cfg.paths.root))
+    return predict_with(model, card, cfg)
+
+
+@torch.no_grad()
+def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig) -> Prediction:
+    """A loaded model's prediction for `cfg.mesh`: sample the mesh, encode, Theta(p_z), simulate the force."""
     cloud, notes = sample_mesh(cfg, card)
     z = model.latent(torch.from_numpy(cloud.points)[None])
     rate = card.rate_hz

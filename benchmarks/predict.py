@@ -1,0 +1,71 @@
+"""Prediction for one mesh, in process with the model already loaded: the time of each step (sample the
+mesh, encode, Theta(p_z) and the force along the default ramp) and of `predict_with` as a whole; median of
+--repeats. The model is built from the default config (untrained weights cost the same time as trained
+ones); the command's whole wall time, start-up included, is measured with `time python predict.py ...`.
+
+    python benchmarks/predict.py [--mesh ../shared/real-meshes/labit_positioning_pin_d5_20.stl] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_module
+
+from pipe.model.card import ModelCard
+from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_components
+from pipe.predict import predict_with, sample_mesh
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def median_seconds(fn, repeats: int) -> float:
+    fn()   # warm-up: first calls load libraries and numba's cached kernels
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh", default=str(ROOT.parent / "shared/real-meshes/labit_positioning_pin_d5_20.stl"))
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    os.environ.setdefault("PROJECT_ROOT", str(ROOT))
+    with initialize_config_module("pipe.conf", version_base="1.3"):
+        train_cfg = compose("config", overrides=["paths.output_dir=unused"])
+        cfg = compose("predict", overrides=[f"mesh={args.mesh}", "run=unused"])
+    encoder, head, dynamics = build_components(train_cfg)
+    model = PIPEModel(encoder, head, dynamics, force_scale=10.0, depth_scale=5.0).eval()
+    card = ModelCard(domain="benchmark", points=int(train_cfg.data.points), cloud_seed=0,
+                     rate_hz=float(train_cfg.data.rate_hz), parameter_names=tuple(dynamics.parameter_names),
+                     train_parts=("none",), train_size_mm=(1.0, 100.0), depth_scale_mm=5.0, force_scale_n=10.0)
+    cloud, _ = sample_mesh(cfg, card)
+    z = model.latent(torch.from_numpy(cloud.points)[None])
+    depth = torch.linspace(0.0, 5.0, int(2.2 * card.rate_hz))[None]
+    steps = {
+        "sample the mesh": lambda: sample_mesh(cfg, card),
+        "encode": lambda: model.latent(torch.from_numpy(cloud.points)[None]),
+        "Theta(p_z) on 201 depths": lambda: model.profile(z, torch.tensor([5.0]))(torch.linspace(0, 5, 201)[None]),
+        "force along the ramp": lambda: model(z, depth, 1.0 / card.rate_hz),
+        "predict_with (all of it)": lambda: predict_with(model, card, cfg),
+    }
+    print(f"mesh {Path(args.mesh).name}, {card.points} points, median of {args.repeats}")
+    print("| step | time |")
+    print("| --- | --- |")
+    with torch.no_grad():
+        for name, fn in steps.items():
+            print(f"| {name} | {median_seconds(fn, args.repeats) * 1e3:.1f} ms |")
+
+
+if __name__ == "__main__":
+    main()
