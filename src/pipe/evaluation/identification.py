@@ -47,7 +47,8 @@ def identify(ctx: EvalContext, parts: list[PartData]) -> list[PIPEModel]:
         batch = collate_trials([(ctx.index[p.name], profile) for p in todo for profile in p.profiles])
         joint = ctx.model.with_head(PartHeads(heads, counts))
         z = ctx.latents[batch.part]
-        optimiser = torch.optim.Adam(joint.head.parameters(), lr=ctx.settings.get("oracle_lr", 1e-3))
+        optimiser = torch.optim.Adam(joint.head.parameters(), lr=ctx.settings.get("oracle_lr", 1e-3),
+                                     foreach=True)     # one multi-tensor update for all the heads' parameters
         with torch.enable_grad():
             for _ in range(ctx.settings.get("oracle_steps", 200)):
                 optimiser.zero_grad()

@@ -23,180 +23,211 @@ import torch
 TAYLOR_DEGREE = 10
 THETA = 0.25          # ||M / 2^s||_1 bound: 0.25^11 / 11! ~ 6e-15 truncation
 MAX_SQUARINGS = 60    # ||M||_1 up to 2^58: beyond any physical stiffness in float64
-CHUNKS = 64           # work items per kernel call, shared among numba's threads
+LANES = 32            # matrices exponentiated side by side, one per SIMD lane of the innermost loops
 
 _jit = numba.njit(cache=True, fastmath=False, parallel=True)
 _jit_serial = numba.njit(cache=True, fastmath=False, inline="always")
 
 
 @_jit_serial
-def _matmul(x: np.ndarray, y: np.ndarray, out: np.ndarray, cx: float) -> None:
-    """out = cx x y (n x n)."""
-    n = x.shape[0]
-    for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += x[i, k] * y[k, j]
-            out[i, j] = cx * acc
+def _load_chunk(a: np.ndarray, b: np.ndarray, dt: float, first: int, x: np.ndarray, y: np.ndarray,
+                squarings: np.ndarray) -> int:
+    """Blocks of M = dt [[a, b], [0, 0]] for items first.. (as many as x holds lanes), one lane per item
+    (x (n, n, L), y (n, L)), each scaled by 2^-s with s its number of squarings; returns the largest s."""
+    n, lanes = y.shape
+    most = 0
+    for lane in range(lanes):
+        item = min(first + lane, a.shape[0] - 1)       # a short last chunk repeats its last item
+        norm = 0.0
+        col_b = 0.0
+        for c in range(n):
+            col = 0.0
+            for r in range(n):
+                col += abs(a[item, r, c])
+            norm = max(norm, col * abs(dt))
+            col_b += abs(b[item, c])
+        norm = max(norm, col_b * abs(dt))
+        s = 0
+        while norm > THETA and s < MAX_SQUARINGS:
+            norm *= 0.5
+            s += 1
+        squarings[lane] = s
+        most = max(most, s)
+        scale = dt * 0.5 ** s
+        for r in range(n):
+            for c in range(n):
+                x[r, c, lane] = a[item, r, c] * scale
+            y[r, lane] = b[item, r] * scale
+    return most
 
 
 @_jit_serial
-def _matvec(x: np.ndarray, v: np.ndarray, out: np.ndarray, cx: float) -> None:
-    """out = cx x v."""
-    n = x.shape[0]
-    for i in range(n):
-        acc = 0.0
-        for k in range(n):
-            acc += x[i, k] * v[k]
-        out[i] = cx * acc
-
-
-@_jit_serial
-def _matvec_t(x: np.ndarray, v: np.ndarray, out: np.ndarray, cx: float) -> None:
-    """out = cx x^T v."""
-    n = x.shape[0]
-    for i in range(n):
-        acc = 0.0
-        for k in range(n):
-            acc += x[k, i] * v[k]
-        out[i] = cx * acc
-
-
-@_jit_serial
-def _squarings(x: np.ndarray, y: np.ndarray) -> int:
-    """How often to halve M = [[x, y], [0, 0]] so that its 1-norm is at most THETA."""
-    n = x.shape[0]
-    norm = 0.0
-    for j in range(n):
-        col = 0.0
-        for i in range(n):
-            col += abs(x[i, j])
-        norm = max(norm, col)
-    col = 0.0
-    for i in range(n):
-        col += abs(y[i])
-    norm = max(norm, col)
-    s = 0
-    while norm > THETA and s < MAX_SQUARINGS:
-        norm *= 0.5
-        s += 1
-    return s
-
-
-@_jit_serial
-def _expm_forward(a: np.ndarray, b: np.ndarray, dt: float, x: np.ndarray, y: np.ndarray, hp: np.ndarray,
-                  hv: np.ndarray, sp: np.ndarray, sv: np.ndarray) -> int:
-    """exp(M) for M = dt [[a, b], [0, 0]], kept in block form [[P, p], [0, 1]] (every polynomial in M and
-    every product of such blocks has that form); returns the number of squarings s.
-
-    x, y: M's blocks scaled by 2^-s. Horner: P_d = I, p_d = 0, P_{j-1} = I + x P_j / j,
-    p_{j-1} = (x p_j + y) / j, so exp(M / 2^s) ~ (P_0, p_0) = (sp[0], sv[0]); squarings:
-    sp[i + 1] = sp[i]^2, sv[i + 1] = sp[i] sv[i] + sv[i]. All iterates are kept for the backward.
-    """
-    n = a.shape[0]
-    for i in range(n):
-        for j in range(n):
-            x[i, j] = a[i, j] * dt
-        y[i] = b[i] * dt
-    s = _squarings(x, y)
-    scale = 0.5 ** s
-    for i in range(n):
-        for j in range(n):
-            x[i, j] *= scale
-        y[i] *= scale
-    hp[TAYLOR_DEGREE, :, :] = 0.0
-    hv[TAYLOR_DEGREE, :] = 0.0
-    for i in range(n):
-        hp[TAYLOR_DEGREE, i, i] = 1.0
+def _expm_chunk(x: np.ndarray, y: np.ndarray, squarings: np.ndarray, most: int, hp: np.ndarray, hv: np.ndarray,
+                sp: np.ndarray, sv: np.ndarray) -> None:
+    """exp(M) of every lane, in block form [[P, p], [0, 1]] (every polynomial in M, and every product of
+    such blocks, has it), with all iterates kept for the backward. Horner: P_d = I, p_d = 0,
+    P_{j-1} = I + x P_j / j, p_{j-1} = (x p_j + y) / j; exp(M / 2^s) ~ (P_0, p_0) = (sp[0], sv[0]).
+    Squarings: sp[i + 1] = sp[i]^2, sv[i + 1] = sp[i] sv[i] + sv[i] for lanes with i < s, a copy for the
+    others, so sp[most] holds every lane's exp(M). Lanes are the innermost, contiguous dimension."""
+    n, lanes = y.shape
+    hp[TAYLOR_DEGREE] = 0.0
+    hv[TAYLOR_DEGREE] = 0.0
+    for r in range(n):
+        hp[TAYLOR_DEGREE, r, r, :] = 1.0
     for j in range(TAYLOR_DEGREE, 0, -1):
-        _matmul(x, hp[j], hp[j - 1], 1.0 / j)
-        _matvec(x, hv[j], hv[j - 1], 1.0 / j)
+        inv = 1.0 / j
         for r in range(n):
-            hp[j - 1, r, r] += 1.0
-            hv[j - 1, r] += y[r] / j
-    sp[0, :, :] = hp[0]
-    sv[0, :] = hv[0]
-    for i in range(s):
-        _matmul(sp[i], sp[i], sp[i + 1], 1.0)
-        _matvec(sp[i], sv[i], sv[i + 1], 1.0)
+            for c in range(n):
+                out = hp[j - 1, r, c]
+                out[:] = 0.0
+                for k in range(n):
+                    xr, pc = x[r, k], hp[j, k, c]
+                    for lane in range(lanes):
+                        out[lane] += xr[lane] * pc[lane]
+                diagonal = 1.0 if r == c else 0.0
+                for lane in range(lanes):
+                    out[lane] = out[lane] * inv + diagonal
+            out = hv[j - 1, r]
+            out[:] = y[r]
+            for k in range(n):
+                xr, pv = x[r, k], hv[j, k]
+                for lane in range(lanes):
+                    out[lane] += xr[lane] * pv[lane]
+            for lane in range(lanes):
+                out[lane] *= inv
+    sp[0] = hp[0]
+    sv[0] = hv[0]
+    for i in range(most):
         for r in range(n):
-            sv[i + 1, r] += sv[i, r]
-    return s
+            for c in range(n):
+                out = sp[i + 1, r, c]
+                out[:] = 0.0
+                for k in range(n):
+                    left, right = sp[i, r, k], sp[i, k, c]
+                    for lane in range(lanes):
+                        out[lane] += left[lane] * right[lane]
+            out = sv[i + 1, r]
+            out[:] = sv[i, r]
+            for k in range(n):
+                left, right = sp[i, r, k], sv[i, k]
+                for lane in range(lanes):
+                    out[lane] += left[lane] * right[lane]
+        for r in range(n):
+            for lane in range(lanes):
+                if i >= squarings[lane]:
+                    for c in range(n):
+                        sp[i + 1, r, c, lane] = sp[i, r, c, lane]
+                    sv[i + 1, r, lane] = sv[i, r, lane]
 
 
 @_jit
 def discretize_forward(a: np.ndarray, b: np.ndarray, dt: float, phi: np.ndarray, gamma: np.ndarray) -> None:
     count, n = b.shape
-    chunks = min(count, CHUNKS)
-    for chunk in numba.prange(chunks):       # one workspace per chunk, not per matrix
-        x, y = np.empty((n, n)), np.empty(n)
-        hp, hv = np.empty((TAYLOR_DEGREE + 1, n, n)), np.empty((TAYLOR_DEGREE + 1, n))
-        sp, sv = np.empty((MAX_SQUARINGS + 1, n, n)), np.empty((MAX_SQUARINGS + 1, n))
-        for item in range(chunk * count // chunks, (chunk + 1) * count // chunks):
-            s = _expm_forward(a[item], b[item], dt, x, y, hp, hv, sp, sv)
-            phi[item] = sp[s]
-            gamma[item] = sv[s]
+    chunks = (count + LANES - 1) // LANES
+    for chunk in numba.prange(chunks):
+        x, y = np.empty((n, n, LANES)), np.empty((n, LANES))
+        squarings = np.empty(LANES, dtype=np.int64)
+        hp, hv = np.empty((TAYLOR_DEGREE + 1, n, n, LANES)), np.empty((TAYLOR_DEGREE + 1, n, LANES))
+        first = chunk * LANES
+        most = _load_chunk(a, b, dt, first, x, y, squarings)
+        sp, sv = np.empty((most + 1, n, n, LANES)), np.empty((most + 1, n, LANES))
+        _expm_chunk(x, y, squarings, most, hp, hv, sp, sv)
+        for lane in range(min(LANES, count - first)):
+            for r in range(n):
+                for c in range(n):
+                    phi[first + lane, r, c] = sp[most, r, c, lane]
+                gamma[first + lane, r] = sv[most, r, lane]
 
 
 @_jit
 def discretize_backward(a: np.ndarray, b: np.ndarray, dt: float, grad_phi: np.ndarray, grad_gamma: np.ndarray,
                         grad_a: np.ndarray, grad_b: np.ndarray) -> None:
     """The exact adjoint of discretize_forward's algorithm, its steps in reverse (the forward is recomputed):
-    squarings (S' = S S, g' = S g + g):  S_bar = S'_bar S^T + S^T S'_bar + g'_bar g^T, g_bar = S^T g'_bar + g'_bar;
-    Horner (P' = I + x P / j, p' = (x p + y) / j):  x_bar += (P'_bar P^T + p'_bar p^T) / j, y_bar += p'_bar / j,
-    P_bar = x^T P'_bar / j, p_bar = x^T p'_bar / j."""
+    squarings (S' = S S, g' = S g + g):  S_bar = S'_bar S^T + S^T S'_bar + g'_bar g^T, g_bar = S^T g'_bar + g'_bar
+    (the identity for lanes that copied); Horner (P' = I + x P / j, p' = (x p + y) / j):
+    x_bar += (P'_bar P^T + p'_bar p^T) / j, y_bar += p'_bar / j, P_bar = x^T P'_bar / j, p_bar = x^T p'_bar / j."""
     count, n = b.shape
-    chunks = min(count, CHUNKS)
+    chunks = (count + LANES - 1) // LANES
     for chunk in numba.prange(chunks):
-        x, y = np.empty((n, n)), np.empty(n)
-        hp, hv = np.empty((TAYLOR_DEGREE + 1, n, n)), np.empty((TAYLOR_DEGREE + 1, n))
-        sp, sv = np.empty((MAX_SQUARINGS + 1, n, n)), np.empty((MAX_SQUARINGS + 1, n))
-        adj_p, adj_v = np.empty((n, n)), np.empty(n)
-        new_p, new_v = np.empty((n, n)), np.empty(n)
-        grad_x, grad_y = np.empty((n, n)), np.empty(n)
-        for item in range(chunk * count // chunks, (chunk + 1) * count // chunks):
-            s = _expm_forward(a[item], b[item], dt, x, y, hp, hv, sp, sv)
-            adj_p[:, :] = grad_phi[item]
-            adj_v[:] = grad_gamma[item]
-            for i in range(s - 1, -1, -1):
-                sq, v = sp[i], sv[i]
-                for r in range(n):
-                    for c in range(n):
-                        acc = adj_v[r] * v[c]
-                        for k in range(n):
-                            acc += adj_p[r, k] * sq[c, k] + sq[k, r] * adj_p[k, c]
-                        new_p[r, c] = acc
-                _matvec_t(sq, adj_v, new_v, 1.0)
-                for r in range(n):
-                    new_v[r] += adj_v[r]
-                adj_p[:, :] = new_p
-                adj_v[:] = new_v
-            grad_x[:, :] = 0.0
-            grad_y[:] = 0.0
-            for j in range(1, TAYLOR_DEGREE + 1):
-                hpj, hvj = hp[j], hv[j]
-                for r in range(n):
-                    grad_y[r] += adj_v[r] / j
-                    for c in range(n):
-                        acc = adj_v[r] * hvj[c]
-                        for k in range(n):
-                            acc += adj_p[r, k] * hpj[c, k]
-                        grad_x[r, c] += acc / j
-                for r in range(n):
-                    for c in range(n):
-                        acc = 0.0
-                        for k in range(n):
-                            acc += x[k, r] * adj_p[k, c]
-                        new_p[r, c] = acc / j
-                _matvec_t(x, adj_v, new_v, 1.0 / j)
-                adj_p[:, :] = new_p
-                adj_v[:] = new_v
-            scale = 0.5 ** s * dt
+        x, y = np.empty((n, n, LANES)), np.empty((n, LANES))
+        squarings = np.empty(LANES, dtype=np.int64)
+        hp, hv = np.empty((TAYLOR_DEGREE + 1, n, n, LANES)), np.empty((TAYLOR_DEGREE + 1, n, LANES))
+        first = chunk * LANES
+        most = _load_chunk(a, b, dt, first, x, y, squarings)
+        sp, sv = np.empty((most + 1, n, n, LANES)), np.empty((most + 1, n, LANES))
+        _expm_chunk(x, y, squarings, most, hp, hv, sp, sv)
+        adj_p, adj_v = np.zeros((n, n, LANES)), np.zeros((n, LANES))
+        new_p, new_v = np.empty((n, n, LANES)), np.empty((n, LANES))
+        grad_x, grad_y = np.zeros((n, n, LANES)), np.zeros((n, LANES))
+        for lane in range(min(LANES, count - first)):
             for r in range(n):
                 for c in range(n):
-                    grad_a[item, r, c] = grad_x[r, c] * scale
-                grad_b[item, r] = grad_y[r] * scale
+                    adj_p[r, c, lane] = grad_phi[first + lane, r, c]
+                adj_v[r, lane] = grad_gamma[first + lane, r]
+        for i in range(most - 1, -1, -1):
+            for r in range(n):
+                for c in range(n):
+                    out = new_p[r, c]
+                    vc, ar = sv[i, c], adj_v[r]
+                    for lane in range(LANES):
+                        out[lane] = ar[lane] * vc[lane]
+                    for k in range(n):
+                        p1, s1, s2, p2 = adj_p[r, k], sp[i, c, k], sp[i, k, r], adj_p[k, c]
+                        for lane in range(LANES):
+                            out[lane] += p1[lane] * s1[lane] + s2[lane] * p2[lane]
+                out = new_v[r]
+                out[:] = adj_v[r]
+                for k in range(n):
+                    s2, v2 = sp[i, k, r], adj_v[k]
+                    for lane in range(LANES):
+                        out[lane] += s2[lane] * v2[lane]
+            for lane in range(LANES):
+                if i < squarings[lane]:
+                    for r in range(n):
+                        for c in range(n):
+                            adj_p[r, c, lane] = new_p[r, c, lane]
+                        adj_v[r, lane] = new_v[r, lane]
+        for j in range(1, TAYLOR_DEGREE + 1):
+            inv = 1.0 / j
+            for r in range(n):
+                ar = adj_v[r]
+                gy = grad_y[r]
+                for lane in range(LANES):
+                    gy[lane] += ar[lane] * inv
+                for c in range(n):
+                    gx, hvc = grad_x[r, c], hv[j, c]
+                    for lane in range(LANES):
+                        gx[lane] += ar[lane] * hvc[lane] * inv
+                    for k in range(n):
+                        p1, h1 = adj_p[r, k], hp[j, c, k]
+                        for lane in range(LANES):
+                            gx[lane] += p1[lane] * h1[lane] * inv
+            for r in range(n):
+                for c in range(n):
+                    out = new_p[r, c]
+                    out[:] = 0.0
+                    for k in range(n):
+                        x1, p2 = x[k, r], adj_p[k, c]
+                        for lane in range(LANES):
+                            out[lane] += x1[lane] * p2[lane]
+                    for lane in range(LANES):
+                        out[lane] *= inv
+                out = new_v[r]
+                out[:] = 0.0
+                for k in range(n):
+                    x1, v2 = x[k, r], adj_v[k]
+                    for lane in range(LANES):
+                        out[lane] += x1[lane] * v2[lane]
+                for lane in range(LANES):
+                    out[lane] *= inv
+            adj_p[:] = new_p
+            adj_v[:] = new_v
+        for lane in range(min(LANES, count - first)):
+            scale = 0.5 ** squarings[lane] * dt
+            for r in range(n):
+                for c in range(n):
+                    grad_a[first + lane, r, c] = grad_x[r, c, lane] * scale
+                grad_b[first + lane, r] = grad_y[r, lane] * scale
 
 
 @_jit
