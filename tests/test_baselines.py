@@ -69,9 +69,12 @@ def test_identifying_parts_together_equals_one_by_one(ctx):
     for p in parts:
         context.cache.clear()
         alone.append(identify(context, [p])[0])
-    for a, b in zip(together, alone):
-        for (name, x), y in zip(a.head.state_dict().items(), b.head.state_dict().values()):
-            torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6, msg=name)
+    for p, a, b in zip(parts, together, alone):    # equal up to float32 rounding, which Adam's sign-like
+        batch = context.batch(p)                    # steps amplify in parameters with ~zero gradient
+        z = context.latent(p).expand(len(batch.part), -1)
+        with torch.no_grad():
+            force_together, force_alone = a(z, batch.depth, DT), b(z, batch.depth, DT)
+        assert (force_together - force_alone).abs().max() <= 1e-4 * force_alone.abs().max()
     for fitted in together:                                                                   # they moved
         assert not torch.equal(fitted.head.amplitude[-1].bias, context.model.head.amplitude[-1].bias)
 

@@ -261,6 +261,15 @@ def test_edgeconv_equals_the_textbook_per_edge_layer(training, kernel, monkeypat
         torch.testing.assert_close(b, c, msg=name)
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_edgeconv_on_cuda_takes_the_torch_path_and_matches_the_cpu():
+    torch.manual_seed(0)
+    layer = EdgeConv(8, 16, k=5)
+    x = torch.randn(2, 8, 40)
+    on_gpu = layer.cuda()(x.cuda()).cpu()
+    torch.testing.assert_close(on_gpu, layer.cpu()(x), rtol=1e-4, atol=1e-4)
+
+
 def test_knn_includes_the_point_itself_and_its_true_neighbours():
     x = torch.tensor([[[0.0, 1.0, 10.0, 11.5]]])   # 1-D points along one channel
     idx = knn(x, 2)[0]
