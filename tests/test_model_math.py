@@ -203,8 +203,8 @@ def test_profile_is_a_normalised_weighted_sum():
     np.testing.assert_allclose(profile(p)[0, :, 0].numpy(), expected)
     assert profile(p)[0, 1, 0].item() == pytest.approx(2.0)     # halfway between two equal models
     weights = profile.weights(p)
-    assert weights.shape == (1, 1, 2, 3)        # (B, P, N, T)
-    np.testing.assert_allclose(weights.sum(2).numpy(), 1.0)
+    assert weights.shape == (1, 3, 1, 2)        # (B, T, P, N)
+    np.testing.assert_allclose(weights.sum(-1).numpy(), 1.0)
 
 
 def test_profile_stays_within_its_amplitudes():

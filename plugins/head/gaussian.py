@@ -43,16 +43,18 @@ class GaussianProfile:
     width: torch.Tensor
 
     def weights(self, depth: torch.Tensor) -> torch.Tensor:
-        """Normalised Psi_i(p) / sum_n Psi_n(p) at depth (B, T): (B, P, N, T), computed as a softmax over N.
+        """Normalised Psi_i(p) / sum_n Psi_n(p) at depth (B, T): (B, T, P, N), computed as a softmax."""
+        return self._weights_depth_last(depth).permute(0, 3, 1, 2)
 
-        Depth is the last (contiguous) dimension: a softmax over a dimension of 10 local models runs about
-        five times faster, forward and backward, across the T samples than along its own 10 elements."""
+    def _weights_depth_last(self, depth: torch.Tensor) -> torch.Tensor:
+        """`weights` laid out (B, P, N, T): a softmax over the 10 local models runs about five times faster,
+        forward and backward, across the T contiguous samples than along its own 10 elements."""
         p = depth[:, None, None, :]
         log_psi = -(p - self.centre[..., None]) ** 2 / (2 * self.width[..., None] ** 2)
         return torch.softmax(log_psi, dim=2)
 
     def __call__(self, depth: torch.Tensor) -> torch.Tensor:
-        return (self.weights(depth) * self.amplitude[..., None]).sum(2).transpose(1, 2)
+        return (self._weights_depth_last(depth) * self.amplitude[..., None]).sum(2).transpose(1, 2)
 
 
 class ResidualBlock(nn.Module):
