@@ -159,14 +159,16 @@ def test_stiff_positive_parameters_stay_bounded(backend, a0, dtype):
     assert force.abs().max() <= 24.0 * (1 + 1e-5)
 
 
-def test_auto_uses_the_compiled_kernels_on_cpu(monkeypatch):
+def test_auto_uses_the_compiled_kernels_on_cpu_from_a_size_on(monkeypatch):
     calls = []
     compiled = ltv._compiled()
-    monkeypatch.setattr(compiled.CompiledRecurrence, "apply", lambda *args: calls.append(1) or
+    monkeypatch.setattr(compiled.CompiledRecurrence, "apply", lambda *args: calls.append(args[2].shape) or
                         ltv.recurrence_torch(*args))
     monkeypatch.setattr(ltv, "_backend", "auto")
-    ltv.simulate(*mds2_system(1, 5), 1e-3)
-    assert calls == [1]
+    monkeypatch.setattr(ltv, "AUTO_COMPILED_MIN_STEPS", 20)
+    ltv.simulate(*mds2_system(1, 19), 1e-3)     # below the size: the torch loop
+    ltv.simulate(*mds2_system(2, 10), 1e-3)
+    assert calls == [(2, 10)]
 
 
 def test_auto_falls_back_to_torch_without_numba(monkeypatch):

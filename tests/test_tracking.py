@@ -44,13 +44,27 @@ def test_a_domain_run_records_params_metrics_tags_artifacts_and_model(trained_ru
 
 
 @pytest.mark.parametrize("uri", ["runs:/{run_id}/model", "models:/pipe-tiny/latest"])
-def test_the_logged_model_loads_and_predicts_like_the_trained_one(trained_run, uri):
-    model = mlflow.pytorch.load_model(uri.format(run_id=trained_run.mlflow_run_id), map_location="cpu").eval()
+@pytest.mark.parametrize("loader", ["mlflow.pytorch", "pipe.predict"])
+def test_the_logged_model_loads_and_predicts_like_the_trained_one(trained_run, uri, loader):
+    """predict.py reads the pytorch flavor itself (without importing mlflow.pytorch); both give the model."""
+    from pipe.predict import load_pytorch_flavor
+
+    uri = uri.format(run_id=trained_run.mlflow_run_id)
+    model = mlflow.pytorch.load_model(uri, map_location="cpu") if loader == "mlflow.pytorch" \
+        else load_pytorch_flavor(uri)
     depth = torch.linspace(0, 8, 300)[None]
     z = trained_run.latents[:1]
     with torch.no_grad():
         expected = trained_run.model.eval()(z, depth, trained_run.dt)
-        np.testing.assert_allclose(model(z, depth, trained_run.dt).numpy(), expected.numpy(), rtol=1e-5)
+        np.testing.assert_allclose(model.eval()(z, depth, trained_run.dt).numpy(), expected.numpy(), rtol=1e-5)
+
+
+def test_prediction_starts_without_lightning():
+    """The start-up of predict.py: neither Lightning nor mlflow.pytorch (6 s of imports here) is loaded."""
+    code = "import sys, pipe.app, pipe.predict; print(sorted(m for m in ('lightning', 'pytorch_lightning', " \
+           "'mlflow.pytorch', 'pipe.tracking') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
 
 
 def test_a_crashing_run_ends_failed(tiny_data, tmp_path, monkeypatch):

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -12,19 +14,20 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
+os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")   # one model file: no progress bars
 import matplotlib.pyplot as plt  # noqa: E402
 import mlflow  # noqa: E402
-import mlflow.pytorch  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from mlflow.exceptions import MlflowException  # noqa: E402
+from mlflow.models import Model  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
 from pipe.data.dataset import Trial, read_numeric_csv  # noqa: E402
 from pipe.data.preprocess import PointCloud, cloud_from_mesh, resample  # noqa: E402
 from pipe.errors import PipeError  # noqa: E402
 from pipe.model.card import ModelCard  # noqa: E402
-from pipe.tracking import tracking_uri  # noqa: E402
+from pipe.store import tracking_uri  # noqa: E402
 
 log = logging.getLogger(__name__)
 SIZE_TOLERANCE = 10.0   # a part this many times smaller or larger than the training parts is suspicious
@@ -47,6 +50,19 @@ def model_uri(run: str) -> str:
     return run if ":/" in run else f"runs:/{run}/model"
 
 
+def load_pytorch_flavor(uri: str) -> torch.nn.Module:
+    """The module an `mlflow.pytorch.log_model` call saved at uri, read as that flavor stores it (the
+    MLmodel file's `pytorch.model_data` folder holding `model.pth`, written by torch.save).
+
+    `mlflow.pytorch.load_model` does the same, but importing mlflow.pytorch imports pytorch_lightning for
+    its autologging, which took 6 of predict.py's 14 s here (benchmarks/predict.py, BENCHMARKS.md);
+    tests/test_tracking.py checks that both load the same model."""
+    with tempfile.TemporaryDirectory() as tmp:
+        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=tmp))
+        data = Model.load(str(local / "MLmodel")).flavors["pytorch"]["model_data"]
+        return torch.load(local / data / "model.pth", map_location="cpu", weights_only=False)
+
+
 def load_model(run: str, uri_override: str | None, root: Path) -> tuple[torch.nn.Module, ModelCard]:
     """The trained PIPEModel and its model card from the MLflow store."""
     store = tracking_uri(uri_override, root)
@@ -60,8 +76,8 @@ def load_model(run: str, uri_override: str | None, root: Path) -> tuple[torch.nn
                         "that train.py printed, or a runs:/ or models:/ URI") from None
     card = ModelCard.from_dict(metadata, uri)   # before unpickling: an incompatible model fails clearly
     try:
-        model = mlflow.pytorch.load_model(uri, map_location="cpu")
-    except (MlflowException, OSError, ImportError, AttributeError) as exc:
+        model = load_pytorch_flavor(uri)
+    except (MlflowException, OSError, ImportError, AttributeError, KeyError) as exc:
         raise PipeError(f"the model at {uri} could not be loaded ({type(exc).__name__}: {exc}); a model with "
                         "plugins from another package needs that package installed") from None
     return model.eval(), card

@@ -24,19 +24,10 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from pipe import __version__
+from pipe.store import artifact_location, tracking_uri
 
 PARENT_RUN_ENV = "PIPE_MLFLOW_PARENT_RUN_ID"
 
-
-def tracking_uri(configured: str | None, root: Path) -> str:
-    return os.environ.get("MLFLOW_TRACKING_URI") or configured or f"sqlite:///{root / 'mlflow.db'}"
-
-
-def artifact_location(uri: str) -> str | None:
-    """Artifacts of a local SQLite store live beside it, wherever the command was launched."""
-    if uri.startswith("sqlite:///"):
-        return (Path(uri.removeprefix("sqlite:///")).parent / "mlartifacts").resolve().as_uri()
-    return None
 
 
 def use_experiment(cfg: DictConfig) -> str:

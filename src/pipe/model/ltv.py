@@ -8,8 +8,10 @@ stiffness, so the recursion cannot blow up; it is differentiable and batched.
 Two implementations give the same numbers (tests/test_simulator.py):
 - "compiled" (`pipe.model.ltv_numba`): numba kernels with exact adjoint backward passes; CPU tensors;
 - "torch": `torch.linalg.matrix_exp` and a Python loop over time; any device, the reference.
-The backend is "auto" by default (compiled for CPU tensors when numba imports, torch otherwise); choose
-one with `set_backend`, the `PIPE_SIMULATOR` environment variable or train.py's `simulator=` option.
+The backend is "auto" by default: compiled for CPU tensors of at least AUTO_COMPILED_MIN_STEPS steps in all
+when numba imports, torch otherwise (a single short trajectory, as predict.py simulates, takes the loop a
+few ms, less than loading the compiled kernels, about 1 s once per process). Choose one with `set_backend`,
+the `PIPE_SIMULATOR` environment variable or train.py's `simulator=` option.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from pipe.errors import PipeError
 
 BACKENDS = ("auto", "compiled", "torch")
 _COMPILED_DTYPES = (torch.float32, torch.float64)
+AUTO_COMPILED_MIN_STEPS = 20_000   # batch x steps from which "auto" takes the compiled kernels
 _backend = os.environ.get("PIPE_SIMULATOR", "auto")
 
 
@@ -51,9 +54,12 @@ def _compiled() -> ModuleType | None:
     return ltv_numba
 
 
-def _use_compiled(*tensors: torch.Tensor) -> bool:
-    """Compiled for CPU float32/float64 tensors unless "torch" is chosen; a CUDA tensor takes the torch path."""
+def _use_compiled(steps: int, *tensors: torch.Tensor) -> bool:
+    """Compiled for CPU float32/float64 tensors unless "torch" is chosen ("auto": from AUTO_COMPILED_MIN_STEPS
+    steps); a CUDA tensor takes the torch path."""
     if _backend == "torch" or any(t.device.type != "cpu" or t.dtype not in _COMPILED_DTYPES for t in tensors):
+        return False
+    if _backend == "auto" and steps < AUTO_COMPILED_MIN_STEPS:
         return False
     if len({t.dtype for t in tensors}) != 1:
         return False
@@ -62,7 +68,7 @@ def _use_compiled(*tensors: torch.Tensor) -> bool:
 
 def discretize(a: torch.Tensor, b: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
     """A (..., n, n), B (..., n) -> Phi = exp(A dt) (..., n, n), Gamma = int_0^dt exp(A s) ds B (..., n)."""
-    if _use_compiled(a, b):
+    if _use_compiled(b[..., 0].numel(), a, b):
         return _compiled().CompiledDiscretize.apply(a, b, dt)
     return discretize_torch(a, b, dt)
 
@@ -80,7 +86,7 @@ def discretize_torch(a: torch.Tensor, b: torch.Tensor, dt: float) -> tuple[torch
 def recurrence(phi: torch.Tensor, gamma: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """States (B, T + 1, n) of x_{k+1} = Phi_k x_k + Gamma_k u_k from x_0 = 0; Phi (B, T, n, n),
     Gamma (B, T, n), u (B, T)."""
-    if _use_compiled(phi, gamma, u):
+    if _use_compiled(u.numel(), phi, gamma, u):
         return _compiled().CompiledRecurrence.apply(phi, gamma, u)
     return recurrence_torch(phi, gamma, u)
 
