@@ -191,3 +191,16 @@ def test_cuda_tensors_take_the_torch_path_and_agree():
     on_gpu = simulate_with("auto", a.cuda(), b.cuda(), u.cuda(), 1e-3)
     assert on_gpu.device.type == "cuda"
     torch.testing.assert_close(on_gpu.cpu(), simulate_with("compiled", a, b, u, 1e-3), rtol=1e-9, atol=1e-9)
+
+
+def test_auto_compiles_a_training_batch(monkeypatch):
+    """Regression: a size threshold once sent stage 2's batches (10 trials of ~400 samples) to the torch loop."""
+    calls = []
+    compiled = ltv._compiled()
+    monkeypatch.setattr(compiled.CompiledRecurrence, "apply", lambda *args: calls.append(1) or
+                        ltv.recurrence_torch(*args))
+    monkeypatch.setattr(ltv, "_backend", "auto")
+    times = np.arange(0, 4.0, 0.01)
+    theta = torch.tensor([4e-4, 0.04, 1.0, 2.0]).expand(10, len(times), 4)
+    MDS2()(theta, torch.tensor(depth_of(times), dtype=torch.float32).expand(10, -1), 0.01)
+    assert calls == [1]

@@ -182,3 +182,30 @@ def test_help_and_cfg_job():
     assert "encoder: dgcnn, pointnet" in help_text and "model: mds1, mds2" in help_text
     job = run_train("--cfg", "job", "encoder=dgcnn", "domain=pins").stdout
     assert "DGCNNVAE" in job and "taper8" in job
+
+
+def test_the_progress_bar_shows_steps_per_second(tmp_path):
+    import lightning as L
+
+    from pipe.training.progress import RateProgressBar
+    from pipe.training.trainer import make_trainer
+
+    class Tiny(L.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.layer = torch.nn.Linear(2, 1)
+
+        def training_step(self, batch, batch_idx):
+            loss = self.layer(batch).pow(2).mean()
+            self.log("tiny/train_loss", loss)
+            return loss
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    cfg = config(["paths.output_dir=unused", "trainer.progress_bar=true"]).trainer
+    trainer = make_trainer(cfg, tmp_path, "tiny", epochs=2, has_val=False)
+    bar = next(c for c in trainer.callbacks if isinstance(c, RateProgressBar))
+    trainer.fit(Tiny(), torch.utils.data.DataLoader(torch.randn(12, 2), batch_size=4))
+    assert bar.steps_per_second > 0
+    assert float(bar.get_metrics(trainer, trainer.lightning_module)["steps/s"]) > 0

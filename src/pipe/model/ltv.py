@@ -9,8 +9,9 @@ Two implementations give the same numbers (tests/test_simulator.py):
 - "compiled" (`pipe.model.ltv_numba`): numba kernels with exact adjoint backward passes; CPU tensors;
 - "torch": `torch.linalg.matrix_exp` and a Python loop over time; any device, the reference.
 The backend is "auto" by default: compiled for CPU tensors of at least AUTO_COMPILED_MIN_STEPS steps in all
-when numba imports, torch otherwise (a single short trajectory, as predict.py simulates, takes the loop a
-few ms, less than loading the compiled kernels, about 1 s once per process). Choose one with `set_backend`,
+when numba imports, torch otherwise (a single trajectory of up to 20 s at 100 Hz, as predict.py simulates,
+takes the loop a few ms, less than loading the compiled kernels, about 1 s once per process; a training
+batch of 10 trials is always above it). Choose one with `set_backend`,
 the `PIPE_SIMULATOR` environment variable or train.py's `simulator=` option.
 """
 
@@ -26,7 +27,7 @@ from pipe.errors import PipeError
 
 BACKENDS = ("auto", "compiled", "torch")
 _COMPILED_DTYPES = (torch.float32, torch.float64)
-AUTO_COMPILED_MIN_STEPS = 20_000   # batch x steps from which "auto" takes the compiled kernels
+AUTO_COMPILED_MIN_STEPS = 2_000    # batch x steps from which "auto" takes the compiled kernels
 _backend = os.environ.get("PIPE_SIMULATOR", "auto")
 
 
