@@ -204,3 +204,17 @@ def test_auto_compiles_a_training_batch(monkeypatch):
     theta = torch.tensor([4e-4, 0.04, 1.0, 2.0]).expand(10, len(times), 4)
     MDS2()(theta, torch.tensor(depth_of(times), dtype=torch.float32).expand(10, -1), 0.01)
     assert calls == [1]
+
+
+@pytest.mark.parametrize("value, ok", [("torch", True), ("compiled", True), ("fast", False)])
+def test_the_environment_variable_chooses_the_backend(value, ok):
+    import subprocess
+    import sys
+
+    code = "from pipe.model import ltv; print(ltv.get_backend())"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={**__import__("os").environ, "PIPE_SIMULATOR": value})
+    if ok:
+        assert out.returncode == 0 and out.stdout.strip() == value
+    else:
+        assert out.returncode != 0 and "unknown simulator 'fast'" in out.stderr
