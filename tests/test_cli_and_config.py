@@ -90,3 +90,12 @@ def test_train_reports_unknown_config_option(tmp_path):
     result = run_train("domain=nope", f"hydra.run.dir={tmp_path / 'run'}")
     assert result.returncode != 0
     assert "nope" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_the_simulator_option_defaults_to_the_environment_variable(monkeypatch):
+    from conftest import compose_config
+
+    assert compose_config(["paths.output_dir=unused"]).simulator == "auto"
+    monkeypatch.setenv("PIPE_SIMULATOR", "torch")
+    assert compose_config(["paths.output_dir=unused"]).simulator == "torch"
+    assert compose_config(["paths.output_dir=unused", "simulator=compiled"]).simulator == "compiled"
