@@ -120,18 +120,27 @@ def _expm_chunk(x: np.ndarray, y: np.ndarray, squarings: np.ndarray, most: int, 
                     sv[i + 1, r, lane] = sv[i, r, lane]
 
 
+@_jit_serial
+def _exponentials(a: np.ndarray, b: np.ndarray, dt: float, first: int) -> tuple:
+    """One chunk's forward pass from item `first` on: the scaled x, each lane's squarings, the largest, and
+    the Horner (hp, hv) and squaring (sp, sv) iterates, whose last squaring holds every lane's exp(M)."""
+    n = b.shape[1]
+    x, y = np.empty((n, n, LANES)), np.empty((n, LANES))
+    squarings = np.empty(LANES, dtype=np.int64)
+    hp, hv = np.empty((TAYLOR_DEGREE + 1, n, n, LANES)), np.empty((TAYLOR_DEGREE + 1, n, LANES))
+    most = _load_chunk(a, b, dt, first, x, y, squarings)
+    sp, sv = np.empty((most + 1, n, n, LANES)), np.empty((most + 1, n, LANES))
+    _expm_chunk(x, y, squarings, most, hp, hv, sp, sv)
+    return x, squarings, most, hp, hv, sp, sv
+
+
 @_jit
 def discretize_forward(a: np.ndarray, b: np.ndarray, dt: float, phi: np.ndarray, gamma: np.ndarray) -> None:
     count, n = b.shape
     chunks = (count + LANES - 1) // LANES
     for chunk in numba.prange(chunks):
-        x, y = np.empty((n, n, LANES)), np.empty((n, LANES))
-        squarings = np.empty(LANES, dtype=np.int64)
-        hp, hv = np.empty((TAYLOR_DEGREE + 1, n, n, LANES)), np.empty((TAYLOR_DEGREE + 1, n, LANES))
         first = chunk * LANES
-        most = _load_chunk(a, b, dt, first, x, y, squarings)
-        sp, sv = np.empty((most + 1, n, n, LANES)), np.empty((most + 1, n, LANES))
-        _expm_chunk(x, y, squarings, most, hp, hv, sp, sv)
+        _, _, most, _, _, sp, sv = _exponentials(a, b, dt, first)
         for lane in range(min(LANES, count - first)):
             for r in range(n):
                 for c in range(n):
@@ -149,13 +158,8 @@ def discretize_backward(a: np.ndarray, b: np.ndarray, dt: float, grad_phi: np.nd
     count, n = b.shape
     chunks = (count + LANES - 1) // LANES
     for chunk in numba.prange(chunks):
-        x, y = np.empty((n, n, LANES)), np.empty((n, LANES))
-        squarings = np.empty(LANES, dtype=np.int64)
-        hp, hv = np.empty((TAYLOR_DEGREE + 1, n, n, LANES)), np.empty((TAYLOR_DEGREE + 1, n, LANES))
         first = chunk * LANES
-        most = _load_chunk(a, b, dt, first, x, y, squarings)
-        sp, sv = np.empty((most + 1, n, n, LANES)), np.empty((most + 1, n, LANES))
-        _expm_chunk(x, y, squarings, most, hp, hv, sp, sv)
+        x, squarings, most, hp, hv, sp, sv = _exponentials(a, b, dt, first)
         adj_p, adj_v = np.zeros((n, n, LANES)), np.zeros((n, LANES))
         new_p, new_v = np.empty((n, n, LANES)), np.empty((n, LANES))
         grad_x, grad_y = np.zeros((n, n, LANES)), np.zeros((n, LANES))
