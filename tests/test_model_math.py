@@ -121,7 +121,33 @@ def test_solver_is_differentiable():
     assert torch.isfinite(theta.grad).all() and theta.grad.abs().sum() > 0
 
 
-def test_chamfer_matches_brute_force():
+@pytest.fixture(params=["numba", "torch"])
+def nearest_search(request, monkeypatch):
+    """Run a test with the compiled nearest-pair search and with its torch fallback."""
+    from pipe.model import chamfer as module
+
+    if request.param == "torch":
+        monkeypatch.setattr(module, "numba", None)
+    return request.param
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_nearest_pairs_match_brute_force(nearest_search, dtype):
+    from pipe.model.chamfer import nearest_pairs
+
+    rng = np.random.default_rng(2)
+    x, y = rng.normal(size=(3, 50, 3)), rng.normal(size=(3, 70, 3))
+    y[:, 9] = y[:, 5]
+    x[:, 0] = y[:, 5] + 0.01                          # a tie: the first of equally near points, 5
+    d = ((x[:, :, None] - y[:, None]) ** 2).sum(-1)
+    to_y, to_x = nearest_pairs(torch.tensor(x, dtype=dtype), torch.tensor(y, dtype=dtype))
+    assert to_y.shape == (3, 50) and to_x.shape == (3, 70)
+    np.testing.assert_array_equal(to_y.numpy(), d.argmin(2))
+    np.testing.assert_array_equal(to_x.numpy(), d.argmin(1))
+    assert (to_y[:, 0] == 5).all()
+
+
+def test_chamfer_matches_brute_force(nearest_search):
     rng = np.random.default_rng(0)
     x, y = rng.normal(size=(2, 50, 3)), rng.normal(size=(2, 70, 3))
     for b in range(2):
@@ -132,7 +158,7 @@ def test_chamfer_matches_brute_force():
         assert mean_nearest_distance(torch.tensor(x), torch.tensor(y))[b].item() == pytest.approx(mean_nn)
 
 
-def test_chamfer_gradient_matches_brute_force():
+def test_chamfer_gradient_matches_brute_force(nearest_search):
     """By hand: d/dx_i of min_j ||x_i - y_j||^2 is 2 (x_i - y_nn(i)); each y_j that is the nearest of x_i gets
     -2 (x_i - y_j); the other direction likewise."""
     rng = np.random.default_rng(1)

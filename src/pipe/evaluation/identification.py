@@ -48,7 +48,7 @@ def identify(ctx: EvalContext, parts: list[PartData]) -> list[PIPEModel]:
         joint = ctx.model.with_head(PartHeads(heads, counts))
         z = ctx.latents[batch.part]
         optimiser = torch.optim.Adam(joint.head.parameters(), lr=ctx.settings.get("oracle_lr", 1e-3),
-                                     foreach=True)     # one multi-tensor update for all the heads' parameters
+                                     fused=True)     # one fused update for all the heads' parameters
         with torch.enable_grad():
             for _ in range(ctx.settings.get("oracle_steps", 200)):
                 optimiser.zero_grad()

@@ -176,7 +176,7 @@ class BlackBox(Method):
                            for p in part.profiles])
         inputs = torch.cat([z, (depth / depth_scale)[:, None]], 1)
         generator = torch.Generator().manual_seed(ctx.seed)
-        optimiser = torch.optim.Adam(self.net.parameters(), lr=1e-3, foreach=True)
+        optimiser = torch.optim.Adam(self.net.parameters(), lr=1e-3, fused=True)
         with torch.enable_grad():
             for _ in range(ctx.settings.get("blackbox_steps", 2000)):
                 rows = torch.randint(len(inputs), (1024,), generator=generator)

@@ -23,7 +23,7 @@ import torch
 TAYLOR_DEGREE = 10
 THETA = 0.25          # ||M / 2^s||_1 bound: 0.25^11 / 11! ~ 6e-15 truncation
 MAX_SQUARINGS = 60    # ||M||_1 up to 2^58: beyond any physical stiffness in float64
-LANES = 32            # matrices exponentiated side by side, one per SIMD lane of the innermost loops
+LANES = 64            # matrices exponentiated side by side, one per SIMD lane of the innermost loops
 
 _jit = numba.njit(cache=True, fastmath=False, parallel=True)
 _jit_serial = numba.njit(cache=True, fastmath=False, inline="always")

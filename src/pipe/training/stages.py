@@ -38,7 +38,7 @@ class VAEStage(L.LightningModule):
         self._step(clouds, "val")
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        return torch.optim.Adam(self.encoder.parameters(), lr=self.lr, foreach=True)   # one kernel per step, same math
+        return torch.optim.Adam(self.encoder.parameters(), lr=self.lr, fused=True)   # one fused kernel per step, same math
 
 
 class HeadStage(L.LightningModule):
@@ -70,4 +70,4 @@ class HeadStage(L.LightningModule):
         self.model.encoder.eval()  # keep batch-norm statistics frozen too
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        return torch.optim.Adam(self.model.head.parameters(), lr=self.lr, foreach=True)
+        return torch.optim.Adam(self.model.head.parameters(), lr=self.lr, fused=True)
