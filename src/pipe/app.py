@@ -26,24 +26,32 @@ def _train(cfg: DictConfig) -> None:
 
     from pipe.cli import console, fail
     from pipe.errors import PipeError
-    from pipe.pipeline import results_rows, run_domain
+    from pipe.pipeline import results_rows, run_domain, run_seeds, spread_rows
 
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # device banners and tips, twice
+    title = (f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
+             f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
     try:
-        result = run_domain(cfg)
+        result = run_seeds(cfg) if cfg.seeds is not None else run_domain(cfg)
     except PipeError as err:
         sys.exit(fail(str(err)))
-    table = Table("method", "test part", "FIT(F) [%]", "FIT(dF/dt) [%]", "rms [N]", "rms_rel",
-                  title=f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
-                        f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
-    for row in results_rows(result):
+    if cfg.seeds is not None:
+        table = Table("method", "FIT(F) [%]", "FIT(dF/dt) [%]", "rms [N]", "rms_rel", "PIPE vs it (FIT(F))",
+                      title=f"{title}, mean ± std over seeds {', '.join(map(str, result.seeds))}")
+        rows = spread_rows(result)
+    else:
+        table = Table("method", "test part", "FIT(F) [%]", "FIT(dF/dt) [%]", "rms [N]", "rms_rel", title=title)
+        rows = results_rows(result)
+    for row in rows:
         table.add_row(*row)
     console.print(table)
-    console.print(f"stage 1 {result.seconds['vae']:.0f} s, stage 2 {result.seconds['head']:.0f} s, "
-                  f"evaluation {result.seconds['evaluation']:.0f} s; results in {result.run_dir}")
+    seconds = result.seconds
+    console.print(f"{'mean per seed: ' if cfg.seeds is not None else ''}stage 1 {seconds['vae']:.0f} s, stage 2 "
+                  f"{seconds['head']:.0f} s, evaluation {seconds['evaluation']:.0f} s; results in {result.run_dir}")
     if result.mlflow_run_id:
+        model = "<a seed's run id, in seed_<k>/mlflow_run_id>" if cfg.seeds is not None else result.mlflow_run_id
         console.print(f"MLflow run {result.mlflow_run_id} (`mlflow ui` from the project root); predict with: "
-                      f"python predict.py mesh=<part.stl> run={result.mlflow_run_id}")
+                      f"python predict.py mesh=<part.stl> run={model}")
 
 
 @hydra.main(version_base="1.3", config_path=PIPE_CONFIG, config_name="predict")

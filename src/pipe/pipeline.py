@@ -1,8 +1,10 @@
 """One domain run, start to end: ensure the dataset, prepare the domain, fit the VAE, fit the head,
-evaluate PIPE and the baselines on the test parts, and publish (metrics, report, MLflow, model card)."""
+evaluate PIPE and the baselines on the test parts, and publish (metrics, report, MLflow, model card);
+with `seeds`, one such run per seed and the metrics' mean ± std over them."""
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import time
@@ -18,7 +20,7 @@ import numpy as np
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import PartData, PreparedDomain, data_scales, prepare_domain
@@ -26,14 +28,23 @@ from pipe.data.spec import SPEC_FILE
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import MethodResult, evaluate_methods, reconstruction_metrics
-from pipe.evaluation.report import write_report
+from pipe.evaluation.report import spread_markdown, write_report
+from pipe.evaluation.spread import Spread, check_seeds, summarise, verdict
 from pipe.model import ltv
 from pipe.model.card import ModelCard
 from pipe.model.interfaces import DynamicModel, ParameterHead
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 from pipe.synthetic import generate_dataset
-from pipe.tracking import StageLogger, dataset_version, git_commit, log_outputs, tracked_run
+from pipe.tracking import (
+    StageLogger,
+    dataset_version,
+    git_commit,
+    log_outputs,
+    log_run_metrics,
+    parent_run,
+    tracked_run,
+)
 from pipe.training.fit import fit_head, fit_vae
 
 log = logging.getLogger(__name__)
@@ -59,6 +70,21 @@ class RunResult:
     @property
     def pipe(self) -> MethodResult:
         return self.results["pipe"]
+
+
+@dataclass
+class SeedsResult:
+    run_dir: Path
+    domain_name: str
+    seeds: list[int]
+    runs: list[RunResult]                          # one per seed, in the seeds' order
+    summary: dict[str, dict[str, Spread]]          # method -> metric -> mean ± std over the seeds
+    mlflow_run_id: str | None = None               # the parent run of the seeds' runs
+
+    @property
+    def seconds(self) -> dict[str, float]:
+        """Each stage's wall time, mean over the seeds."""
+        return {stage: float(np.mean([run.seconds[stage] for run in self.runs])) for stage in self.runs[0].seconds}
 
 
 def ensure_dataset(data_cfg: Mapping[str, Any]) -> Path:
@@ -138,6 +164,59 @@ def run_domain(cfg: DictConfig) -> RunResult:
     return run
 
 
+def seed_config(cfg: DictConfig, seed: int, out: Path) -> DictConfig:
+    """The config of one seed's run: its own folder `out/seed_<k>`, resumed when resuming and it has
+    checkpoints."""
+    folder = out / f"seed_{seed}"
+    sub = copy.deepcopy(cfg)
+    with open_dict(sub):
+        sub.seed, sub.seeds = seed, None
+        sub.paths.output_dir = str(folder)
+        sub.resume = str(folder) if cfg.resume is not None and (folder / "checkpoints").is_dir() else None
+    return sub
+
+
+def run_seeds(cfg: DictConfig) -> SeedsResult:
+    """`run_domain` once per seed of `cfg.seeds` (folders seed_<k> of the output folder), then every method's
+    metrics as mean ± std over the seeds: metrics.json, results.json and results.md in the output folder,
+    and an MLflow parent run over the seeds' runs holding test/<method>/<metric>_mean and _std."""
+    seeds = check_seeds(cfg.seeds)
+    out = Path(cfg.resume or cfg.paths.output_dir)
+    names = " ".join(cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "model"))
+    tags = {"domain": str(cfg.domain.name), "seeds": ",".join(map(str, seeds))}
+    with parent_run(cfg, f"{cfg.domain.name} {names} seeds {tags['seeds']}", tags) if cfg.mlflow.enabled \
+            else nullcontext() as parent:
+        runs = [run_domain(seed_config(cfg, seed, out)) for seed in seeds]
+        result = SeedsResult(out, runs[0].domain_name, seeds, runs,
+                             summarise([{name: r.domain for name, r in run.results.items()} for run in runs]), parent)
+        write_seeds_results(result)
+        if parent:
+            log_run_metrics(parent, {f"test/{method}/{key}_{part}": getattr(value, part)
+                                     for method, values in result.summary.items() for key, value in values.items()
+                                     for part in ("mean", "std")})
+    return result
+
+
+def write_seeds_results(result: SeedsResult) -> None:
+    """metrics.json (PIPE's and the baselines' means and standard deviations, as `dvc metrics show` reads
+    them), results.json (every seed's metrics too) and results.md (the table with PIPE's verdicts)."""
+    summary, counts = result.summary, result.runs[0].counts
+    stat = {part: {name: {k: getattr(v, part) for k, v in metrics.items()} for name, metrics in summary.items()}
+            for part in ("mean", "std")}
+    (result.run_dir / "metrics.json").write_text(json.dumps(
+        {"seeds": result.seeds, "test": stat["mean"]["pipe"], "test_std": stat["std"]["pipe"],
+         "baselines": {n: m for n, m in stat["mean"].items() if n != "pipe"},
+         "baselines_std": {n: m for n, m in stat["std"].items() if n != "pipe"},
+         "mean_seconds": result.seconds}, indent=2) + "\n")
+    (result.run_dir / "results.json").write_text(json.dumps(
+        {"domain": result.domain_name, "parts": counts, "seeds": result.seeds,
+         "methods": {n: {k: {"mean": v.mean, "std": v.std, "n": v.n} for k, v in m.items()}
+                     for n, m in summary.items()},
+         "per_seed": {str(seed): {n: r.domain for n, r in run.results.items()}
+                      for seed, run in zip(result.seeds, result.runs)}}, indent=2) + "\n")
+    (result.run_dir / "results.md").write_text(spread_markdown(result.domain_name, counts, result.seeds, summary))
+
+
 def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, run_dir: Path, resume: bool,
                        loggers: list) -> RunResult:
     """Both training stages, then PIPE and the baselines on the test parts, metrics.json and the report."""
@@ -169,3 +248,10 @@ def results_rows(result: RunResult) -> list[list[str]]:
     rows = [["pipe", name, *(f"{m[k]:.2f}" for k in METRICS)] for name, m in result.pipe.per_part.items()]
     rows += [[name, "domain mean", *(f"{r.domain[k]:.2f}" for k in METRICS)] for name, r in result.results.items()]
     return rows
+
+
+def spread_rows(result: SeedsResult) -> list[list[str]]:
+    """Printable rows: every method's mean ± std over the seeds, and PIPE against it on FIT(F)."""
+    pipe = result.summary["pipe"]["fit_F"]
+    return [[name, *(str(m[k]) for k in ("fit_F", "fit_dF", "rms", "rms_rel")),
+             "-" if name == "pipe" else verdict(pipe, m["fit_F"], "fit_F")] for name, m in result.summary.items()]

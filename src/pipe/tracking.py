@@ -1,4 +1,4 @@
-"""MLflow tracking: one run per domain training, a parent run per Hydra multirun.
+"""MLflow tracking: one run per domain training, a parent run per Hydra multirun and per seeds= run.
 
 The default store is the SQLite file `mlflow.db` at the project root (what `mlflow ui` opens there with no
 flags), with artifacts in `mlartifacts/` beside it; `MLFLOW_TRACKING_URI` or `mlflow.tracking_uri`
@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import os
 import subprocess
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -20,6 +21,7 @@ import mlflow.pytorch
 import torch
 from hydra.experimental.callback import Callback
 from lightning.pytorch.loggers import MLFlowLogger
+from mlflow.entities import Metric
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
@@ -100,20 +102,59 @@ def tracked_run(cfg: DictConfig, run_name: str, tags: dict[str, str]) -> Iterato
     mlflow.end_run("FINISHED")
 
 
+def open_parent_run(config: DictConfig, run_name: str, tags: dict[str, str]) -> tuple[str, str | None]:
+    """A run that the domain runs started after it (`tracked_run`) join as children until `close_parent_run`;
+    itself a child of the enclosing parent if there is one (seeds inside a multirun). Its id, and the
+    enclosing parent's."""
+    experiment_id = use_experiment(config)
+    enclosing = os.environ.get(PARENT_RUN_ENV)
+    if enclosing:
+        tags = {**tags, "mlflow.parentRunId": enclosing}
+    run = MlflowClient().create_run(experiment_id, run_name=run_name, tags=tags)
+    os.environ[PARENT_RUN_ENV] = run.info.run_id
+    return run.info.run_id, enclosing
+
+
+def close_parent_run(run_id: str, enclosing: str | None, failed: bool = False) -> None:
+    """End a parent run (FINISHED unless it failed or a child already marked it) and restore the enclosing one."""
+    if enclosing:
+        os.environ[PARENT_RUN_ENV] = enclosing
+    else:
+        os.environ.pop(PARENT_RUN_ENV, None)
+    if MlflowClient().get_run(run_id).info.status == "RUNNING":
+        MlflowClient().set_terminated(run_id, "FAILED" if failed else "FINISHED")
+
+
+@contextmanager
+def parent_run(cfg: DictConfig, run_name: str, tags: dict[str, str]) -> Iterator[str]:
+    """`open_parent_run` for the duration of a block; FAILED if the block raises."""
+    run_id, enclosing = open_parent_run(cfg, run_name, tags)
+    try:
+        yield run_id
+    except BaseException:
+        close_parent_run(run_id, enclosing, failed=True)
+        raise
+    close_parent_run(run_id, enclosing)
+
+
 class MLflowSweepCallback(Callback):
     """Hydra callback: a multirun gets a parent MLflow run; each job's run becomes its child."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        experiment_id = use_experiment(config)
-        client = MlflowClient()
-        run = client.create_run(experiment_id, run_name=f"sweep {config.hydra.sweep.dir.rsplit('/', 1)[-1]}",
-                                tags={"sweep_dir": str(config.hydra.sweep.dir)})
-        os.environ[PARENT_RUN_ENV] = run.info.run_id
+        self.run_id, self.enclosing = open_parent_run(
+            config, f"sweep {config.hydra.sweep.dir.rsplit('/', 1)[-1]}", {"sweep_dir": str(config.hydra.sweep.dir)})
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        parent = os.environ.pop(PARENT_RUN_ENV, None)
-        if parent and MlflowClient().get_run(parent).info.status == "RUNNING":   # no child failed
-            MlflowClient().set_terminated(parent, "FINISHED")
+        close_parent_run(self.run_id, self.enclosing)
+
+
+def log_run_metrics(run_id: str, metrics: dict[str, float]) -> None:
+    """Metrics into a run that is not the active one (a parent run), in batches."""
+    now = int(time.time() * 1000)
+    entries = [Metric(key, value, now, 0) for key, value in metrics.items()]
+    client = MlflowClient()
+    for start in range(0, len(entries), 1000):     # MLflow takes at most 1000 metrics per batch
+        client.log_batch(run_id, metrics=entries[start:start + 1000])
 
 
 def log_outputs(run, registered_model: str | None) -> None:

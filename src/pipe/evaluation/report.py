@@ -14,6 +14,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from pipe.evaluation.evaluate import MethodResult  # noqa: E402
+from pipe.evaluation.spread import Spread, verdict  # noqa: E402
 
 COLUMNS = [("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("nrmse_fit_F", "NRMSE fit(F) [%]"),
            ("rms", "rms [N]"), ("rms_rel", "rms_rel"), ("static_rms", "static rms [N]")]
@@ -49,6 +50,23 @@ def results_markdown(doc: dict) -> str:
               "| --- | --- | --- |"]
     lines += [f"| {part} | {r['nn_distance_mm']:.3f} | {r['chamfer_mm2']:.1f} |"
               for part, r in doc["reconstruction"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def spread_markdown(domain: str, counts: dict[str, int], seeds: list[int],
+                    summary: dict[str, dict[str, Spread]]) -> str:
+    """Every method's metrics as mean ± std over the seeds, and PIPE against it on FIT(F) (a difference
+    within the spreads is a tie, `pipe.evaluation.spread`)."""
+    head = "| domain | method | # train | # val | # test | " + " | ".join(t for _, t in COLUMNS) + " | PIPE vs it |"
+    lines = [f"### Domain {domain}, mean ± std over seeds {', '.join(map(str, seeds))}", "", head,
+             "|" + " --- |" * (6 + len(COLUMNS))]
+    pipe = summary["pipe"]["fit_F"]
+    for name, metrics in summary.items():
+        judged = "-" if name == "pipe" else verdict(pipe, metrics["fit_F"], "fit_F")
+        lines.append(f"| {domain} | {name} | {counts['train']} | {counts['val']} | {counts['test']} | "
+                     + " | ".join(str(metrics[k]) if k in metrics else "-" for k, _ in COLUMNS) + f" | {judged} |")
+    lines += ["", "PIPE vs it: on FIT(F), `better` or `worse` only when the means differ by more than the two "
+              "standard deviations added; `tie` otherwise."]
     return "\n".join(lines) + "\n"
 
 

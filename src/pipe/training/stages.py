@@ -38,7 +38,7 @@ class VAEStage(L.LightningModule):
         self._step(clouds, "val")
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        return torch.optim.Adam(self.encoder.parameters(), lr=self.lr, fused=True)   # one fused kernel per step, same math
+        return torch.optim.Adam(self.encoder.parameters(), lr=self.lr, fused=True)   # one fused kernel, same math
 
 
 class HeadStage(L.LightningModule):
