@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -155,7 +157,10 @@ def test_reconstruction_metrics_of_a_perfect_and_a_shifted_reconstruction():
 
     points = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0]], dtype=np.float32)
     parts = [PartData("p", PointCloud(points, np.zeros(3), "volume"), [], [])]
-    assert reconstruction_metrics(Echo(0.0), parts)["p"] == {"chamfer_mm2": 0.0, "nn_distance_mm": 0.0}
+    assert reconstruction_metrics(Echo(0.0), parts)["p"] == {"chamfer_mm2": 0.0, "nn_distance_mm": 0.0,
+                                                             "nn_distance_unit_sphere": 0.0}
     shifted = reconstruction_metrics(Echo(1.0), parts)["p"]
     assert shifted["nn_distance_mm"] == pytest.approx(1.0)     # every nearest neighbour 1 mm away
     assert shifted["chamfer_mm2"] == pytest.approx(6.0)        # 3 points x 1 mm^2, both ways
+    # centroid (10/3, 10/3, 0); the farthest point (10, 0, 0) lies sqrt(20^2 + 10^2) / 3 mm from it
+    assert shifted["nn_distance_unit_sphere"] == pytest.approx(3 / math.sqrt(500.0))

@@ -73,7 +73,9 @@ def test_a_seeds_run_reports_mean_and_std_over_its_seeds(tiny_data, tmp_path):
         a, b = (m["baselines"]["nearest"][key] for m in per_seed)
         assert saved["baselines"]["nearest"][key] == pytest.approx((a + b) / 2)
     table = (tmp_path / "results.md").read_text()
-    assert "±" in table and "PIPE vs it" in table
+    assert "±" in table and "PIPE vs it" in table and "unit sphere" in table
+    a, b = (m["reconstruction"]["dsub26"]["nn_distance_mm"] for m in per_seed)    # the one test part
+    assert saved["reconstruction"]["nn_distance_mm"] == pytest.approx((a + b) / 2)
     assert set(json.loads((tmp_path / "results.json").read_text())["per_seed"]) == {"0", "1"}
 
     runs = MlflowClient().search_runs([mlflow.get_experiment_by_name("seeds").experiment_id])

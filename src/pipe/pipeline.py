@@ -86,6 +86,13 @@ class SeedsResult:
         """Each stage's wall time, mean over the seeds."""
         return {stage: float(np.mean([run.seconds[stage] for run in self.runs])) for stage in self.runs[0].seconds}
 
+    @property
+    def reconstruction(self) -> dict[str, Spread]:
+        """The VAE's reconstruction metrics of the test parts (their mean over the parts), over the seeds."""
+        per_seed = [{k: float(np.mean([m[k] for m in run.reconstruction.values()]))
+                     for k in next(iter(run.reconstruction.values()))} for run in self.runs]
+        return summarise([{"reconstruction": m} for m in per_seed])["reconstruction"]
+
 
 def ensure_dataset(data_cfg: Mapping[str, Any]) -> Path:
     """The dataset folder; the synthetic one is generated first when it is missing."""
@@ -207,6 +214,8 @@ def write_seeds_results(result: SeedsResult) -> None:
         {"seeds": result.seeds, "test": stat["mean"]["pipe"], "test_std": stat["std"]["pipe"],
          "baselines": {n: m for n, m in stat["mean"].items() if n != "pipe"},
          "baselines_std": {n: m for n, m in stat["std"].items() if n != "pipe"},
+         "reconstruction": {k: v.mean for k, v in result.reconstruction.items()},
+         "reconstruction_std": {k: v.std for k, v in result.reconstruction.items()},
          "mean_seconds": result.seconds}, indent=2) + "\n")
     (result.run_dir / "results.json").write_text(json.dumps(
         {"domain": result.domain_name, "parts": counts, "seeds": result.seeds,
@@ -214,7 +223,8 @@ def write_seeds_results(result: SeedsResult) -> None:
                      for n, m in summary.items()},
          "per_seed": {str(seed): {n: r.domain for n, r in run.results.items()}
                       for seed, run in zip(result.seeds, result.runs)}}, indent=2) + "\n")
-    (result.run_dir / "results.md").write_text(spread_markdown(result.domain_name, counts, result.seeds, summary))
+    (result.run_dir / "results.md").write_text(spread_markdown(result.domain_name, counts, result.seeds, summary,
+                                                               result.reconstruction))
 
 
 def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, run_dir: Path, resume: bool,
