@@ -59,7 +59,7 @@ def test_seeds_need_two_different_integers(seeds):
 
 @pytest.mark.slow
 def test_a_seeds_run_reports_mean_and_std_over_its_seeds(tiny_data, tmp_path):
-    cfg = smoke_config(tiny_data, tmp_path, "seeds=[0,1]", "mlflow.experiment=seeds")
+    cfg = smoke_config(tiny_data, tmp_path, "seeds=[0,1]", "mlflow.experiment=seeds", "mlflow.registered_model=null")
     result = run_seeds(cfg)
     per_seed = [json.loads((tmp_path / f"seed_{k}" / "metrics.json").read_text()) for k in (0, 1)]
     assert [run.run_dir for run in result.runs] == [tmp_path / "seed_0", tmp_path / "seed_1"]
