@@ -34,15 +34,18 @@ def test_every_combination_composes_and_builds(encoder, model, domain):
 def test_paper_values_are_the_defaults():
     cfg = config(["paths.output_dir=unused"])
     assert (cfg.encoder.latent_dim, cfg.head.num_local_models) == (32, 10)
-    assert dict(cfg.stages.vae) | {} == {"epochs": 500, "batch_size": 10, "lr": 1e-4, "kl_weight": 1.0}
+    assert dict(cfg.stages.vae) | {} == {"epochs": 500, "batch_size": 10, "lr": 1e-4, "kl_weight": 1.0,
+                                         "feature_dtype": "float32"}
     assert dict(cfg.stages.head) == {"epochs": 100, "batch_size": 10, "lr": 2e-4}
     assert (cfg.domain.name, cfg.encoder._target_.endswith("PointNetVAE"), cfg.model._target_.endswith("MDS2")) \
         == ("conn", True, True)
 
 
-@pytest.mark.parametrize("encoder, model", [("pointnet", "mds2"), ("dgcnn", "mds2"), ("pointnet", "mds1")])
-def test_smoke_training_runs_both_stages(tiny_data, tmp_path, encoder, model):
-    result = run_domain(smoke_config(tiny_data, tmp_path, f"encoder={encoder}", f"model={model}"))
+@pytest.mark.parametrize("encoder, model, dtype", [("pointnet", "mds2", "float32"), ("dgcnn", "mds2", "float32"),
+                                                   ("pointnet", "mds1", "float32"), ("pointnet", "mds2", "bfloat16")])
+def test_smoke_training_runs_both_stages(tiny_data, tmp_path, encoder, model, dtype):
+    result = run_domain(smoke_config(tiny_data, tmp_path, f"encoder={encoder}", f"model={model}",
+                                     f"stages.vae.feature_dtype={dtype}"))
     assert set(result.pipe.per_part) == {"dsub26"}
     assert all(np.isfinite(v) for v in result.pipe.domain.values())
     for stage in ("vae", "head"):
@@ -163,6 +166,35 @@ def test_the_readme_plugin_example_trains(tiny_data, tmp_path):
                        env={"PYTHONPATH": str(tmp_path)})
     assert result.returncode == 0, result.stderr[-3000:]
     assert "MyModel" in result.stdout
+
+
+def test_bfloat16_features_only_while_training():
+    """stages.vae.feature_dtype=bfloat16: the feature network computes in bf16 while training (close to
+    float32), the latent heads and everything in evaluation stay float32."""
+    from pipe.plugins.encoder.pointnet import PointNetVAE
+    from pipe.training.stages import VAEStage
+
+    torch.manual_seed(0)
+    encoder = PointNetVAE(num_points=64)
+    VAEStage(encoder, lr=1e-3, kl_weight=1.0, feature_dtype="bfloat16")
+    seen = []
+    encoder.convs[0].register_forward_hook(lambda module, args, out: seen.append(out.dtype))
+    clouds = 10 * torch.randn(4, 64, 3)
+    mu_bf16 = encoder.train().encode(clouds)[0]
+    encoder.train_feature_dtype = torch.float32
+    mu_fp32 = encoder.encode(clouds)[0]
+    encoder.train_feature_dtype = torch.bfloat16
+    encoder.eval().encode(clouds)
+    assert seen == [torch.bfloat16, torch.float32, torch.float32] and mu_bf16.dtype == torch.float32
+    assert torch.allclose(mu_bf16, mu_fp32, atol=0.05 * mu_fp32.abs().max().item())
+
+
+def test_an_unknown_feature_dtype_is_refused_clearly(tiny_data, tmp_path):
+    result = run_train("experiment=smoke", "stages.vae.feature_dtype=float16", f"data.dir={tiny_data}",
+                       f"hydra.run.dir={tmp_path}", *TINY_DOMAIN)
+    assert result.returncode != 0
+    assert "unknown stages.vae.feature_dtype 'float16'; choose one of float32, bfloat16" in result.stderr
+    assert "Traceback" not in result.stderr
 
 
 @pytest.mark.parametrize("overrides, message", [

@@ -40,7 +40,8 @@ def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val:
     """Stage 1 (`cfg.stages.vae`): the encoder learns to reconstruct the training clouds."""
     stage = cfg.stages.vae
     trainer = make_trainer(cfg.trainer, run_dir, "vae", stage.epochs, bool(val), loggers)
-    return fit_stage(trainer, VAEStage(encoder, lr=stage.lr, kl_weight=stage.kl_weight),
+    module = VAEStage(encoder, lr=stage.lr, kl_weight=stage.kl_weight, feature_dtype=stage.feature_dtype)
+    return fit_stage(trainer, module,
                      cloud_loader(train, stage.batch_size, True, cfg.seed),
                      cloud_loader(val, stage.batch_size, False, cfg.seed) if val else None, run_dir, "vae", resume)
 

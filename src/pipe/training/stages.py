@@ -6,18 +6,26 @@ import lightning as L
 import torch
 
 from pipe.data.batches import TrialBatch
+from pipe.errors import PipeError
 from pipe.model.chamfer import chamfer, mean_nearest_distance
 from pipe.model.losses import kl_divergence
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 
+FEATURE_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
 
 class VAEStage(L.LightningModule):
-    """Stage 1: the VAE reconstructs point clouds; loss = Chamfer (paper) + kl_weight * KL."""
+    """Stage 1: the VAE reconstructs point clouds; loss = Chamfer (paper) + kl_weight * KL. `feature_dtype`
+    the encoder's feature network trains in (`PointCloudVAE.train_feature_dtype`)."""
 
-    def __init__(self, encoder: PointCloudVAE, lr: float, kl_weight: float) -> None:
+    def __init__(self, encoder: PointCloudVAE, lr: float, kl_weight: float, feature_dtype: str = "float32") -> None:
         super().__init__()
+        if feature_dtype not in FEATURE_DTYPES:
+            raise PipeError(f"unknown stages.vae.feature_dtype {feature_dtype!r}; choose one of "
+                            f"{', '.join(FEATURE_DTYPES)}")
         self.encoder, self.lr, self.kl_weight = encoder, lr, kl_weight
+        encoder.train_feature_dtype = FEATURE_DTYPES[feature_dtype]
 
     def _step(self, clouds: torch.Tensor, split: str) -> torch.Tensor:
         out = self.encoder(clouds)
