@@ -10,22 +10,11 @@ points per cloud; median of --repeats.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import torch
+from timing import median_seconds
 
 from pipe.model import chamfer as module
-
-
-def median_seconds(fn, repeats: int) -> float:
-    fn()                                    # warm-up (numba loads its cache on the first call)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def main() -> None:

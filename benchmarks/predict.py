@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
-import time
 from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_module
+from timing import median_seconds
 
 from pipe.model.card import ModelCard
 from pipe.model.pipe_model import PIPEModel
@@ -23,16 +22,6 @@ from pipe.pipeline import build_components
 from pipe.predict import predict_with, sample_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def median_seconds(fn, repeats: int) -> float:
-    fn()   # warm-up: first calls load libraries and numba's cached kernels
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def main() -> None:

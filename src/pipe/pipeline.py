@@ -207,15 +207,15 @@ def run_seeds(cfg: DictConfig) -> SeedsResult:
 def write_seeds_results(result: SeedsResult) -> None:
     """metrics.json (PIPE's and the baselines' means and standard deviations, as `dvc metrics show` reads
     them), results.json (every seed's metrics too) and results.md (the table with PIPE's verdicts)."""
-    summary, counts = result.summary, result.runs[0].counts
+    summary, counts, reconstruction = result.summary, result.runs[0].counts, result.reconstruction
     stat = {part: {name: {k: getattr(v, part) for k, v in metrics.items()} for name, metrics in summary.items()}
             for part in ("mean", "std")}
     (result.run_dir / "metrics.json").write_text(json.dumps(
         {"seeds": result.seeds, "test": stat["mean"]["pipe"], "test_std": stat["std"]["pipe"],
          "baselines": {n: m for n, m in stat["mean"].items() if n != "pipe"},
          "baselines_std": {n: m for n, m in stat["std"].items() if n != "pipe"},
-         "reconstruction": {k: v.mean for k, v in result.reconstruction.items()},
-         "reconstruction_std": {k: v.std for k, v in result.reconstruction.items()},
+         "reconstruction": {k: v.mean for k, v in reconstruction.items()},
+         "reconstruction_std": {k: v.std for k, v in reconstruction.items()},
          "mean_seconds": result.seconds}, indent=2) + "\n")
     (result.run_dir / "results.json").write_text(json.dumps(
         {"domain": result.domain_name, "parts": counts, "seeds": result.seeds,
@@ -224,7 +224,7 @@ def write_seeds_results(result: SeedsResult) -> None:
          "per_seed": {str(seed): {n: r.domain for n, r in run.results.items()}
                       for seed, run in zip(result.seeds, result.runs)}}, indent=2) + "\n")
     (result.run_dir / "results.md").write_text(spread_markdown(result.domain_name, counts, result.seeds, summary,
-                                                               result.reconstruction))
+                                                               reconstruction))
 
 
 def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, run_dir: Path, resume: bool,
