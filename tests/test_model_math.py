@@ -12,6 +12,7 @@ from scipy.integrate import solve_ivp
 
 from pipe.model.chamfer import chamfer, mean_nearest_distance
 from pipe.plugins.encoder.dgcnn import EdgeConv, gather_neighbours, knn
+from pipe.plugins.encoder.pointnet import PointNetVAE, _Covariance, _MaxOverPoints
 from pipe.plugins.head.gaussian import GaussianHead, GaussianProfile, centres, width_at_edge
 from pipe.plugins.model.mds1 import MDS1
 from pipe.plugins.model.mds2 import MDS2
@@ -294,6 +295,62 @@ def test_edgeconv_on_cuda_takes_the_torch_path_and_matches_the_cpu():
     x = torch.randn(2, 8, 40)
     on_gpu = layer.cuda()(x.cuda()).cpu()
     torch.testing.assert_close(on_gpu, layer.cpu()(x), rtol=1e-4, atol=1e-4)
+
+
+def pointnet_with_mixed_signs(training: bool) -> PointNetVAE:
+    """A small float64 PointNet whose batch norms have weights of both signs and non-trivial statistics."""
+    torch.manual_seed(0)
+    model = PointNetVAE(channels=(8, 16, 12), num_points=30, latent_dim=4, decoder_hidden=(8,)).double()
+    with torch.no_grad():
+        for module in model.convs:
+            if isinstance(module, torch.nn.BatchNorm1d):
+                module.weight.copy_(torch.randn_like(module.weight))
+                module.bias.copy_(torch.randn_like(module.bias))
+                module.running_mean.copy_(torch.randn_like(module.running_mean))
+                module.running_var.copy_(torch.rand_like(module.running_var) + 0.5)
+    return model.train(training)
+
+
+@pytest.mark.parametrize("training", [True, False])
+def test_pointnet_features_equal_the_layers_as_written(training):
+    """Matrix products per point and, while training, the max taken before batch norm and ReLU: the same
+    features, gradients (parameters and points) and running statistics as Conv1d, BN, ReLU, max."""
+    import copy
+
+    model = pointnet_with_mixed_signs(training)
+    reference = copy.deepcopy(model)
+    points = (2.0 + torch.randn(3, 30, 3, dtype=torch.float64)).requires_grad_()
+    points_ref = points.detach().clone().requires_grad_()
+    got = model.features(points)
+    expected = reference.convs(points_ref.transpose(1, 2)).max(dim=2).values
+    torch.testing.assert_close(got, expected)
+    weights = torch.randn_like(got)
+    (got * weights).sum().backward()
+    (expected * weights).sum().backward()
+    torch.testing.assert_close(points.grad, points_ref.grad)
+    for (name, p), q in zip(model.named_parameters(), reference.parameters()):
+        if p.grad is not None or q.grad is not None:
+            torch.testing.assert_close(p.grad, q.grad, msg=name)
+    for (name, b), c in zip(model.convs.named_buffers(), reference.convs.buffers()):
+        torch.testing.assert_close(b, c, msg=name)
+
+
+def test_pointnet_pooling_functions_pass_gradcheck():
+    torch.manual_seed(1)
+    x = torch.randn(12, 5, dtype=torch.float64, requires_grad=True)
+    weight = torch.randn(7, 5, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda w, v: _MaxOverPoints.apply(w, v, 3), (weight, x))
+    assert torch.autograd.gradcheck(_Covariance.apply, (x,))
+
+
+def test_pointnet_under_autocast_runs_the_layers_as_written():
+    model = pointnet_with_mixed_signs(True).float()
+    points = torch.randn(3, 30, 3, dtype=torch.float32)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = model.features(points)
+    assert got.dtype == torch.bfloat16
+    expected = model.convs(points.transpose(1, 2)).max(dim=2).values
+    torch.testing.assert_close(got.float(), expected, rtol=0.05, atol=0.05)
 
 
 def test_knn_includes_the_point_itself_and_its_true_neighbours():
