@@ -25,7 +25,7 @@ def entry_points(monkeypatch):
 
 
 def test_builtin_methods_are_registered_in_order():
-    assert list(METHODS) == ["pipe", "oracle", "nearest", "gpr", "blackbox", "mean"]
+    assert list(METHODS) == ["pipe", "oracle", "oracle_clean", "nearest", "gpr", "blackbox", "mean"]
     assert METHODS["gpr"].__name__ == "GPR" and "mean" in METHODS and "kriging" not in METHODS
 
 

@@ -26,7 +26,7 @@ def test_a_domain_run_records_params_metrics_tags_artifacts_and_model(trained_ru
     params, metrics, tags = run.data.params, run.data.metrics, run.data.tags
     assert params["stages.vae.epochs"] == "2" and params["domain.name"] == "tiny"
     assert params["encoder._target_"] == "pipe.plugins.encoder.pointnet.PointNetVAE"
-    for method in ("pipe", "oracle", "nearest", "gpr", "blackbox", "mean"):
+    for method in ("pipe", "oracle", "oracle_clean", "nearest", "gpr", "blackbox", "mean"):
         assert f"test/{method}/fit_F" in metrics and f"test/{method}/dsub26/rms" in metrics
     assert metrics["test/pipe/fit_F"] == pytest.approx(trained_run.pipe.domain["fit_F"])
     assert metrics["test/reconstruction/dsub26/nn_distance_mm"] > 0 and "test/reconstruction/chamfer_mm2" in metrics

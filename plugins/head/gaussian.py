@@ -81,10 +81,43 @@ class GaussianHead(ParameterHead):
     def forward(self, z: torch.Tensor, depth_max: torch.Tensor) -> GaussianProfile:
         h = self.trunk(z)
         shape = (z.shape[0], self.num_parameters, self.n)
-        amplitude = F.softplus(self.amplitude(h).view(shape) + SOFTPLUS_ONE)
-        delta = F.softplus(self.section(h).view(shape)) + 1e-6
+        return self.profile(self.amplitude(h).view(shape), self.section(h).view(shape), self.width(h).view(shape),
+                            depth_max)
+
+    def profile(self, amplitude: torch.Tensor, section: torch.Tensor, width: torch.Tensor,
+                depth_max: torch.Tensor) -> GaussianProfile:
+        """The local models from unconstrained values (B, P, N) of amplitudes, sections and widths (0, 0, 0
+        is the neutral profile: amplitudes 1, equal sections, widths midway between their bounds)."""
+        amplitude = F.softplus(amplitude + SOFTPLUS_ONE)
+        delta = F.softplus(section) + 1e-6
         sections = delta / delta.sum(-1, keepdim=True) * depth_max.abs()[:, None, None]
         c_min = width_at_edge(sections / 2, self.edge_ratios[0])
         c_max = width_at_edge(sections / 2, self.edge_ratios[1])
-        width = c_min + torch.sigmoid(self.width(h).view(shape)) * (c_max - c_min)
+        width = c_min + torch.sigmoid(width) * (c_max - c_min)
         return GaussianProfile(amplitude, centres(sections), width)
+
+    def free_profiles(self, rows: torch.Tensor, generator: torch.Generator | None = None) -> FreeGaussianProfiles:
+        return FreeGaussianProfiles(self, rows, generator)
+
+
+class FreeGaussianProfiles(ParameterHead):
+    """The Gaussian head's profile structure with free parameters: per set, the unconstrained amplitudes,
+    sections and widths (P, N) of `GaussianHead.profile`. A random start draws amplitudes log-uniformly
+    between 1/10 and 10 times the scale, sections and width positions from a standard normal."""
+
+    def __init__(self, head: GaussianHead, rows: torch.Tensor, generator: torch.Generator | None) -> None:
+        super().__init__(head.latent_dim, head.num_parameters)
+        self.structure = [head]          # a list: the head's own weights are not parameters of this module
+        self.register_buffer("rows", rows.clone())
+        shape = (int(rows.max()) + 1, head.num_parameters, head.n)
+        if generator is None:
+            values = [torch.zeros(shape) for _ in range(3)]
+        else:
+            scale = 10.0 ** (2 * torch.rand(shape, generator=generator) - 1)
+            amplitude = torch.log(torch.expm1(scale)) - SOFTPLUS_ONE        # softplus(. + SOFTPLUS_ONE) = scale
+            values = [amplitude, torch.randn(shape, generator=generator), torch.randn(shape, generator=generator)]
+        self.amplitude, self.section, self.width = (nn.Parameter(v) for v in values)
+
+    def forward(self, z: torch.Tensor, depth_max: torch.Tensor) -> GaussianProfile:
+        rows = self.rows.expand(len(z)) if len(self.rows) == 1 else self.rows
+        return self.structure[0].profile(self.amplitude[rows], self.section[rows], self.width[rows], depth_max)

@@ -38,11 +38,13 @@ class PointCloud:
 
 @dataclass(frozen=True)
 class Profile:
-    """A trial on a uniform time grid: time [s], depth p_z [mm], force F_z [N]."""
+    """A trial on a uniform time grid: time [s], depth p_z [mm], force F_z [N], and the noise-free force [N]
+    where the dataset has it (synthetic data)."""
 
     time: np.ndarray
     depth: np.ndarray
     force: np.ndarray
+    force_clean: np.ndarray | None = None
 
 
 def volume_centre(mesh: trimesh.Trimesh) -> tuple[np.ndarray, str]:
@@ -93,7 +95,8 @@ def resample(trial: Trial, rate_hz: float) -> Profile:
     if rate_hz <= 0:
         raise ValueError(f"rate_hz must be positive, got {rate_hz}")
     time = np.arange(int(np.floor(trial.duration * rate_hz + 1e-9)) + 1) / rate_hz
-    return Profile(time, np.interp(time, trial.time, trial.depth), np.interp(time, trial.time, trial.force))
+    clean = None if trial.force_clean is None else np.interp(time, trial.time, trial.force_clean)
+    return Profile(time, np.interp(time, trial.time, trial.depth), np.interp(time, trial.time, trial.force), clean)
 
 
 def append_steady_state(profile: Profile, count: int = 1) -> Profile:
@@ -106,6 +109,8 @@ def append_steady_state(profile: Profile, count: int = 1) -> Profile:
         np.concatenate([profile.time, extra_time]),
         np.concatenate([profile.depth, np.full(count, profile.depth[-1])]),
         np.concatenate([profile.force, np.full(count, profile.force[-1])]),
+        None if profile.force_clean is None
+        else np.concatenate([profile.force_clean, np.full(count, profile.force_clean[-1])]),
     )
 
 

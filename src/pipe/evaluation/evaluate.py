@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +16,8 @@ from pipe.evaluation.methods import METHODS, Method
 from pipe.evaluation.metrics import force_metrics, mean_metrics, rms
 from pipe.model.chamfer import chamfer, mean_nearest_distance
 from pipe.model.vae import PointCloudVAE
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -38,15 +41,18 @@ def static_metrics(method: Method, ctx: EvalContext, part: PartData, trial: int)
 
 
 def score(method: Method, ctx: EvalContext, part: PartData, forces: list[np.ndarray]) -> dict[str, float]:
-    rows = [force_metrics(p.force, f, ctx.dt) | static_metrics(method, ctx, part, i)
+    """The paper's metrics against the method's target force, averaged over the part's trials, and the
+    method's own diagnostics."""
+    rows = [force_metrics(getattr(p, method.target), f, ctx.dt) | static_metrics(method, ctx, part, i)
             for i, (p, f) in enumerate(zip(part.profiles, forces))]
     keys = set.intersection(*(set(r) for r in rows))
-    return mean_metrics([{k: r[k] for k in sorted(keys)} for r in rows])
+    return mean_metrics([{k: r[k] for k in sorted(keys)} for r in rows]) | method.diagnostics(ctx, part)
 
 
 @torch.no_grad()
 def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -> dict[str, MethodResult]:
-    """Fit and score each named method (see `METHODS`) on the test parts."""
+    """Fit and score each named method (see `METHODS`) on the test parts; a method that cannot run on
+    them (`Method.unavailable`) is left out with a logged reason."""
     unknown = [n for n in names if n not in METHODS]
     if unknown:
         raise PipeError(f"unknown method(s) {unknown} in evaluation.baselines; available: {list(METHODS)}")
@@ -54,6 +60,10 @@ def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -
     results = {}
     for name in names:
         method = METHODS[name]()
+        reason = method.unavailable(ctx, test)
+        if reason:
+            log.info("%s left out: %s", name, reason)
+            continue
         method.fit(ctx)
         forces = method.predict_all(ctx, test)
         per_part = {part.name: score(method, ctx, part, forces[part.name]) for part in test}

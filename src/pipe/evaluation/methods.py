@@ -1,9 +1,11 @@
 """PIPE and the baselines it is compared with, behind one interface (DESIGN section 5).
 
 - pipe:     the trained model, from the part's latent code.
-- oracle:   the same dynamic model and profile structure fitted to the test part's own recordings
-            (classical system identification, warm-started from PIPE, `pipe.evaluation.identification`):
-            an upper bound, since it uses the recordings PIPE does not need.
+- oracle:   the same dynamic model and profile structure fitted to the test part's own recordings from
+            scratch, to convergence, best of several starts (classical system identification,
+            `pipe.evaluation.identification`): an upper bound, since it uses the recordings PIPE does not need.
+- oracle_clean: the oracle fitted to and scored against the noise-free force (synthetic data): its error
+            is the model structure's alone.
 - nearest:  PIPE's parameters for the training part nearest in latent space.
 - gpr:      Gaussian-process regression from the latent code to the identified parameter profiles of the
             training parts (each identified like the oracle), the task-parameterised approach.
@@ -24,7 +26,7 @@ from torch import nn
 from pipe.data.batches import unpad
 from pipe.data.prepared import PartData
 from pipe.evaluation.context import EvalContext
-from pipe.evaluation.identification import identify
+from pipe.evaluation.identification import Identified, identify
 from pipe.model.pipe_model import PIPEModel
 from pipe.registry import Registry
 
@@ -37,6 +39,15 @@ class Method(ABC):
     """
 
     name: str
+    target = "force"       # the profile field it is scored against: the measured force, or "force_clean"
+
+    def unavailable(self, ctx: EvalContext, parts: list[PartData]) -> str | None:
+        """Why the method cannot run on these parts (e.g. data it needs is missing), or None."""
+        return None
+
+    def diagnostics(self, ctx: EvalContext, part: PartData) -> dict[str, float]:
+        """Extra per-part figures for the results (e.g. an identification's final loss)."""
+        return {}
 
     def fit(self, ctx: EvalContext) -> None:
         """Learn whatever the method needs from the training parts."""
@@ -86,15 +97,33 @@ class PIPE(Method):
 class Oracle(Method):
     name = "oracle"
 
+    def _identified(self, ctx: EvalContext, part: PartData) -> Identified:
+        return identify(ctx, [part], self.target)[0]
+
     def predict_all(self, ctx, parts):
-        identify(ctx, parts)       # all test parts in one batched fit
+        identify(ctx, parts, self.target)       # all test parts in one batched fit
         return super().predict_all(ctx, parts)
 
     def predict(self, ctx, part):
-        return model_forces(ctx, identify(ctx, [part])[0], ctx.latent(part), part)
+        return model_forces(ctx, self._identified(ctx, part).model, ctx.latent(part), part)
 
     def static_force(self, ctx, part, depth_max, depth):
-        return model_static_force(identify(ctx, [part])[0], ctx.latent(part), depth_max, depth)
+        return model_static_force(self._identified(ctx, part).model, ctx.latent(part), depth_max, depth)
+
+    def diagnostics(self, ctx, part):
+        fitted = self._identified(ctx, part)
+        return {"id_loss": fitted.loss, "id_steps": float(fitted.iterations), "id_converged": float(fitted.converged)}
+
+
+@METHODS.register
+class OracleClean(Oracle):
+    name = "oracle_clean"
+    target = "force_clean"
+
+    def unavailable(self, ctx, parts):
+        if any(p.force_clean is None for part in parts for p in part.profiles):
+            return "the dataset has no noise-free force (F_z_clean)"
+        return None
 
 
 @METHODS.register
@@ -114,18 +143,23 @@ class Nearest(Method):
 
 @METHODS.register
 class GPR(Method):
-    """Latent code -> log of each identified parameter profile sampled at `grid` fractions of max depth."""
+    """Latent code -> log of each identified parameter profile sampled at `grid` fractions of max depth.
+
+    Each training part is identified from scratch like the oracle, but from the neutral start only: the
+    regression needs profiles that are comparable across parts, and the best of random starts lands
+    different parts in different local minima (and, where the force determines the parameters only up to a
+    common factor, at different factors)."""
 
     name = "gpr"
     grid = np.linspace(0.0, 1.0, 21)
 
     def fit(self, ctx):
         rows, targets = [], []
-        for part, identified in zip(ctx.train, identify(ctx, ctx.train)):
+        for part, identified in zip(ctx.train, identify(ctx, ctx.train, restarts=1)):
             z = ctx.latent(part)
             depth_max = float(np.mean([np.abs(p.depth).max() for p in part.profiles]))
             depth = torch.tensor(self.grid * depth_max, dtype=torch.float32)[None]
-            theta = identified.profile(z[None], torch.tensor([depth_max]))(depth)   # (1, G, P)
+            theta = identified.model.profile(z[None], torch.tensor([depth_max]))(depth)   # (1, G, P)
             rows.append(z.numpy())
             targets.append(np.log(theta[0].numpy()).T.ravel())
         x = np.stack(rows)

@@ -36,6 +36,17 @@ class ParameterHead(nn.Module, ABC):
     def forward(self, z: torch.Tensor, depth_max: torch.Tensor) -> ParameterProfile:
         """z (B, latent_dim), depth_max (B,) the largest |p_z| of each trajectory, in mm."""
 
+    def free_profiles(self, rows: torch.Tensor, generator: torch.Generator | None = None) -> ParameterHead:
+        """A head with this head's profile structure whose parameters are the profiles' own (e.g. the local
+        models' amplitudes, sections and widths), one set per value of `rows` (B,): row b of a batch takes
+        set rows[b] (a head made for one row gives its one set to every row); the latent code is ignored,
+        every parameter holds the sets along its first axis, and `rows` may be reassigned to fit a subset
+        of the rows. System identification fits these
+        directly to a part's recordings (the oracle, gpr's targets). Without a generator every set starts
+        neutral (each parameter at its scale, constant over depth); with one, from a random start."""
+        raise NotImplementedError(f"the head {type(self).__name__} offers no free profiles for system "
+                                  "identification (the oracle and gpr baselines need them)")
+
 
 class DynamicModel(nn.Module, ABC):
     """A linear model with parameters that vary with depth, x' = A(Theta) x + B(Theta) p_z, force F = x[0].
