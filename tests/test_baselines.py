@@ -173,6 +173,41 @@ def test_gpr_reproduces_a_training_part_at_its_own_latent(ctx):
     np.testing.assert_allclose(theta_gpr.numpy(), theta_id.numpy(), rtol=0.05)
 
 
+@pytest.fixture
+def with_validation(ctx, monkeypatch):
+    """The context with a validation part, and a record of every validation score a baseline computes."""
+    from pipe.evaluation import methods
+
+    context, test = ctx
+    context.val = [part("v", 2.5)]
+    context.index["v"] = 3
+    context.latents = torch.cat([context.latents, torch.full((1, 32), 0.7)])
+    scores = []
+    original = methods.validation_nmse
+    monkeypatch.setattr(methods, "validation_nmse", lambda m, c: scores.append(original(m, c)) or scores[-1])
+    return context, scores, original
+
+
+def test_gpr_takes_the_kernel_with_the_lowest_validation_error(with_validation):
+    context, scores, validation_nmse = with_validation
+    gpr = METHODS["gpr"]()
+    gpr.fit(context)
+    assert len(scores) == 1 + len(gpr.LENGTH_SCALES)          # the likelihood optimum and the fixed grid
+    assert validation_nmse(gpr, context) == pytest.approx(min(scores))
+    if int(np.argmin(scores)) > 0:
+        assert gpr.length_scale == pytest.approx(gpr.LENGTH_SCALES[int(np.argmin(scores)) - 1])
+
+
+def test_blackbox_keeps_the_weights_of_its_lowest_validation_error(with_validation):
+    context, scores, validation_nmse = with_validation
+    context.settings["blackbox_steps"] = 450
+    blackbox = METHODS["blackbox"]()
+    blackbox.fit(context)
+    assert len(scores) == 5                                    # steps 100, 200, 300, 400 and the last, 450
+    assert blackbox.best_step == [100, 200, 300, 400, 450][int(np.argmin(scores))]
+    assert validation_nmse(blackbox, context) == pytest.approx(min(scores))
+
+
 def test_blackbox_learns_a_static_map(ctx):
     context, test = ctx
     blackbox = METHODS["blackbox"]()

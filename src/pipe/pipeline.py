@@ -240,7 +240,7 @@ def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, 
 
     start = time.perf_counter()
     dt = 1.0 / cfg.data.rate_hz
-    ctx = EvalContext(model, latents, index, train, dt, cfg.seed, dict(cfg.evaluation))
+    ctx = EvalContext(model, latents, index, train, dt, cfg.seed, dict(cfg.evaluation), val=val)
     results = evaluate_methods(ctx, test, ["pipe", *cfg.evaluation.baselines])
     reconstruction = reconstruction_metrics(model.encoder, test)
     seconds["evaluation"] = time.perf_counter() - start

@@ -21,6 +21,7 @@ class EvalContext:
     seed: int = 0
     settings: dict = field(default_factory=dict)   # per-baseline options from the `evaluation` config
     cache: dict = field(default_factory=dict)      # results shared between methods (e.g. oracle fits)
+    val: list[PartData] = field(default_factory=list)   # for the baselines' hyperparameters and stopping
 
     def batch(self, part: PartData) -> TrialBatch:
         """All trials of a part, padded, tagged with the part's latent row."""

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -67,6 +68,15 @@ class Method(ABC):
 
 
 METHODS: Registry[type[Method]] = Registry("method")
+
+
+@torch.no_grad()
+def validation_nmse(method: Method, ctx: EvalContext) -> float:
+    """The method's mean NMSE of the force (1 - FIT/100) over the validation parts' trials: what the
+    baselines choose their hyperparameters and stopping point by (never the test parts)."""
+    scores = [np.sum((p.force - f) ** 2) / np.sum((p.force - p.force.mean()) ** 2)
+              for part in ctx.val for p, f in zip(part.profiles, method.predict(ctx, part))]
+    return float(np.mean(scores))
 
 
 @torch.no_grad()
@@ -147,11 +157,12 @@ class GPR(Method):
 
     Each training part is identified from scratch like the oracle, but from the neutral start only: the
     regression needs profiles that are comparable across parts, and the best of random starts lands
-    different parts in different local minima (and, where the force determines the parameters only up to a
-    common factor, at different factors)."""
+    different parts in different local minima. The kernel's length scale is chosen on the validation parts
+    (`validation_nmse`) among the marginal-likelihood optimum and a fixed grid."""
 
     name = "gpr"
     grid = np.linspace(0.0, 1.0, 21)
+    LENGTH_SCALES = (0.25, 0.5, 1.0, 2.0, 4.0)
 
     def fit(self, ctx):
         rows, targets = [], []
@@ -164,10 +175,28 @@ class GPR(Method):
             targets.append(np.log(theta[0].numpy()).T.ravel())
         x = np.stack(rows)
         self.mean, self.std = x.mean(0), x.std(0) + 1e-9
-        kernel = ConstantKernel() * RBF(length_scale=np.sqrt(x.shape[1])) + WhiteKernel(1e-2)
-        self.gp = GaussianProcessRegressor(kernel, normalize_y=True, random_state=ctx.seed)
-        self.gp.fit((x - self.mean) / self.std, np.stack(targets))
         self.num_parameters = len(ctx.model.dynamics.parameter_names)
+        fitted = [GaussianProcessRegressor(kernel, normalize_y=True, random_state=ctx.seed).fit(
+            (x - self.mean) / self.std, np.stack(targets)) for kernel in self.kernels(x.shape[1])]
+        self.gp = fitted[0]
+        if ctx.val:                 # the length scale with the lowest validation error
+            scores = []
+            for gp in fitted:
+                self.gp = gp
+                scores.append(validation_nmse(self, ctx))
+            self.gp = fitted[int(np.argmin(scores))]
+        self.length_scale = float(self.gp.kernel_.k1.k2.length_scale) / np.sqrt(x.shape[1])
+
+    @staticmethod
+    def kernels(dims: int) -> list:
+        """Candidate kernels on standardised codes: all hyperparameters by maximum marginal likelihood, or the
+        RBF length scale fixed at each of LENGTH_SCALES times sqrt(dims) (amplitude and noise by likelihood)."""
+        free = ConstantKernel() * RBF(length_scale=np.sqrt(dims)) + WhiteKernel(1e-2)
+        return [free, *(ConstantKernel() * RBF(length_scale=f * np.sqrt(dims), length_scale_bounds="fixed")
+                        + WhiteKernel(1e-2) for f in GPR.LENGTH_SCALES)]
+
+    def diagnostics(self, ctx, part):
+        return {"gpr_length_scale": self.length_scale}
 
     def _theta(self, ctx: EvalContext, part: PartData, depth: np.ndarray, depth_max: float) -> torch.Tensor:
         log_grid = self.gp.predict(((ctx.latent(part).numpy() - self.mean) / self.std)[None])[0]
@@ -193,38 +222,54 @@ class GPR(Method):
 
 @METHODS.register
 class BlackBox(Method):
-    """An MLP f(z, p_z) -> F trained on every sample of the training trials (MSE); no dynamics, no physics."""
+    """An MLP f(z, p_z) -> F trained on every sample of the training trials (MSE); no dynamics, no physics.
+    Its inputs are standardised (codes by the training parts' mean and std, depth and force by their
+    scales), and it keeps the weights of its lowest validation error, checked every `CHECK_EVERY` steps."""
 
     name = "blackbox"
+    CHECK_EVERY = 100
 
     def fit(self, ctx):
         force_scale, depth_scale = ctx.scales
         self.scales = (force_scale, depth_scale)
-        latent_dim = ctx.latents.shape[1]
-        self.net = nn.Sequential(nn.Linear(latent_dim + 1, 128), nn.ReLU(), nn.Linear(128, 128), nn.ReLU(),
+        codes = torch.stack([ctx.latent(part) for part in ctx.train])
+        self.code_mean, self.code_std = codes.mean(0), codes.std(0) + 1e-6
+        self.net = nn.Sequential(nn.Linear(codes.shape[1] + 1, 128), nn.ReLU(), nn.Linear(128, 128), nn.ReLU(),
                                  nn.Linear(128, 128), nn.ReLU(), nn.Linear(128, 1))
-        z = torch.cat([ctx.latent(part).expand(len(p.depth), -1) for part in ctx.train for p in part.profiles])
-        depth = torch.cat([torch.as_tensor(p.depth, dtype=torch.float32) for part in ctx.train
-                           for p in part.profiles])
+        inputs = torch.cat([self._inputs(ctx, part, p.depth) for part in ctx.train for p in part.profiles])
         force = torch.cat([torch.as_tensor(p.force, dtype=torch.float32) for part in ctx.train
                            for p in part.profiles])
-        inputs = torch.cat([z, (depth / depth_scale)[:, None]], 1)
         generator = torch.Generator().manual_seed(ctx.seed)
         optimiser = torch.optim.Adam(self.net.parameters(), lr=1e-3, fused=True)
-        with torch.enable_grad():
-            for _ in range(ctx.settings.get("blackbox_steps", 2000)):
-                rows = torch.randint(len(inputs), (1024,), generator=generator)
-                optimiser.zero_grad()
+        steps = ctx.settings.get("blackbox_steps", 2000)
+        best, self.best_step = np.inf, steps
+        kept = copy.deepcopy(self.net.state_dict())
+        for step in range(1, steps + 1):
+            rows = torch.randint(len(inputs), (1024,), generator=generator)
+            optimiser.zero_grad()
+            with torch.enable_grad():
                 loss = (self.net(inputs[rows])[:, 0] - force[rows] / force_scale).pow(2).mean()
                 loss.backward()
-                optimiser.step()
+            optimiser.step()
+            if ctx.val and (step % self.CHECK_EVERY == 0 or step == steps):
+                score = validation_nmse(self, ctx)
+                if score < best:
+                    best, self.best_step, kept = score, step, copy.deepcopy(self.net.state_dict())
+        if ctx.val:
+            self.net.load_state_dict(kept)
         self.net.eval().requires_grad_(False)
+
+    def _inputs(self, ctx: EvalContext, part: PartData, depth: np.ndarray) -> torch.Tensor:
+        p = torch.as_tensor(depth, dtype=torch.float32)
+        code = (ctx.latent(part) - self.code_mean) / self.code_std
+        return torch.cat([code.expand(len(p), -1), (p / self.scales[1])[:, None]], 1)
 
     @torch.no_grad()
     def _force(self, ctx: EvalContext, part: PartData, depth: np.ndarray) -> np.ndarray:
-        p = torch.as_tensor(depth, dtype=torch.float32)
-        inputs = torch.cat([ctx.latent(part).expand(len(p), -1), (p / self.scales[1])[:, None]], 1)
-        return self.net(inputs)[:, 0].numpy() * self.scales[0]
+        return self.net(self._inputs(ctx, part, depth))[:, 0].numpy() * self.scales[0]
+
+    def diagnostics(self, ctx, part):
+        return {"blackbox_steps": float(self.best_step)}
 
     def predict(self, ctx, part):
         return [self._force(ctx, part, p.depth) for p in part.profiles]
