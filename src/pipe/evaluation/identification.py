@@ -9,9 +9,9 @@ and Adam updates every parameter from its own gradient alone, so the joint fit t
 Stopping rule, per set: its learning rate halves after `patience` steps without an improvement of its loss
 by more than `tolerance` times the loss (or times 1e-3 of the mean squared target force, whichever is
 larger: a noise-free fit approaching zero loss converges too); it has converged once the rate has halved
-`decays` times; the fit ends when every
-set has converged or after `max_steps`. Each set keeps the parameters of its lowest loss, and each part the
-start with the lowest loss of all.
+`decays` times, and it then leaves the batch; the fit ends when every set has converged or after
+`max_steps`. Each set keeps the parameters of its lowest loss, and each part the start with the lowest
+loss of all.
 """
 
 from __future__ import annotations
