@@ -126,6 +126,19 @@ def test_unknown_identification_option_is_refused(ctx):
         identify(context, [test])
 
 
+def test_a_head_without_free_profiles_is_refused_clearly(ctx):
+    from pipe.model.interfaces import ParameterHead
+
+    class Fixed(ParameterHead):
+        def forward(self, z, depth_max):
+            return lambda depth: torch.ones(*depth.shape, self.num_parameters)
+
+    context, test = ctx
+    context.model = context.model.with_head(Fixed(32, 4))
+    with pytest.raises(PipeError, match="the head Fixed offers no free profiles .* leave them out of evaluation"):
+        identify(context, [test])
+
+
 def test_identifying_parts_together_equals_one_by_one(ctx):
     """Each (part, start) set has its own loss, learning rate and stopping, and its random start does not
     depend on the other parts: fitting parts together gives each the fit it gets alone. Trials of

@@ -15,6 +15,7 @@ from typing import Protocol
 import torch
 from torch import nn
 
+from pipe.errors import PipeError
 from pipe.model.ltv import midpoints, simulate
 
 
@@ -44,8 +45,9 @@ class ParameterHead(nn.Module, ABC):
         of the rows. System identification fits these
         directly to a part's recordings (the oracle, gpr's targets). Without a generator every set starts
         neutral (each parameter at its scale, constant over depth); with one, from a random start."""
-        raise NotImplementedError(f"the head {type(self).__name__} offers no free profiles for system "
-                                  "identification (the oracle and gpr baselines need them)")
+        raise PipeError(f"the head {type(self).__name__} offers no free profiles (ParameterHead.free_profiles) for "
+                        "system identification, which the oracle, oracle_clean and gpr baselines need; leave them "
+                        "out of evaluation.baselines")
 
 
 class DynamicModel(nn.Module, ABC):
