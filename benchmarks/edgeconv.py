@@ -14,6 +14,7 @@ import statistics
 import time
 
 import torch
+from timing import print_ratio_table
 
 from pipe.plugins.encoder.dgcnn import EdgeConv, gather_neighbours, knn
 
@@ -72,11 +73,7 @@ def main() -> None:
     seconds = {name: stack_time(fn, layers, x, args.repeats) for name, fn in variants.items()}
     print(f"EdgeConv stack {channels}, batch 10, {args.points} points, k = {args.k}, forward + backward, "
           f"median of {args.repeats}, {torch.get_num_threads()} threads")
-    print("| EdgeConv stack | time | ratio |")
-    print("| --- | --- | --- |")
-    first = next(iter(seconds.values()))
-    for name, value in seconds.items():
-        print(f"| {name} | {value:.3f} s | {first / value:.2f}x |")
+    print_ratio_table("EdgeConv stack", seconds)
 
 
 if __name__ == "__main__":

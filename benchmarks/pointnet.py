@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 
 import torch
-from timing import median_seconds
+from timing import median_seconds, print_ratio_table
 
 from pipe.plugins.encoder.pointnet import PointNetVAE
 
@@ -36,11 +36,7 @@ def main() -> None:
                for name, fn in variants.items()}
     print(f"PointNet features, batch 10, {args.points} points, forward + backward, training mode, "
           f"median of {args.repeats}, {torch.get_num_threads()} threads")
-    print("| feature network | time | ratio |")
-    print("| --- | --- | --- |")
-    first = next(iter(seconds.values()))
-    for name, value in seconds.items():
-        print(f"| {name} | {value * 1000:.1f} ms | {first / value:.2f}x |")
+    print_ratio_table("feature network", seconds, milliseconds=True)
 
 
 if __name__ == "__main__":

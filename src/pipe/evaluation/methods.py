@@ -176,8 +176,11 @@ class GPR(Method):
         x = np.stack(rows)
         self.mean, self.std = x.mean(0), x.std(0) + 1e-9
         self.num_parameters = len(ctx.model.dynamics.parameter_names)
+        kernels = self.kernels(x.shape[1])
+        if not ctx.val:             # nothing to choose by: the marginal-likelihood optimum alone
+            kernels = kernels[:1]
         fitted = [GaussianProcessRegressor(kernel, normalize_y=True, random_state=ctx.seed).fit(
-            (x - self.mean) / self.std, np.stack(targets)) for kernel in self.kernels(x.shape[1])]
+            (x - self.mean) / self.std, np.stack(targets)) for kernel in kernels]
         self.gp = fitted[0]
         if ctx.val:                 # the length scale with the lowest validation error
             scores = []
@@ -242,8 +245,7 @@ class BlackBox(Method):
         generator = torch.Generator().manual_seed(ctx.seed)
         optimiser = torch.optim.Adam(self.net.parameters(), lr=1e-3, fused=True)
         steps = ctx.settings.get("blackbox_steps", 2000)
-        best, self.best_step = np.inf, steps
-        kept = copy.deepcopy(self.net.state_dict())
+        best, self.best_step, kept = np.inf, steps, None
         for step in range(1, steps + 1):
             rows = torch.randint(len(inputs), (1024,), generator=generator)
             optimiser.zero_grad()
@@ -255,7 +257,7 @@ class BlackBox(Method):
                 score = validation_nmse(self, ctx)
                 if score < best:
                     best, self.best_step, kept = score, step, copy.deepcopy(self.net.state_dict())
-        if ctx.val:
+        if kept is not None:
             self.net.load_state_dict(kept)
         self.net.eval().requires_grad_(False)
 
