@@ -2,24 +2,32 @@
 own recordings, as classical identification does (the oracle, oracle_clean and gpr's targets).
 
 Each part is fitted from several starts (`restarts`: the neutral profile, then random ones; see
-`ParameterHead.free_profiles`), all parts and starts in one batched simulation per Adam step. Every
-(part, start) set has its own parameters and its own loss (the mean squared force error over its trials),
-and Adam updates every parameter from its own gradient alone, so the joint fit takes each set's own steps.
+`ParameterHead.free_profiles`), each start on its own, by L-BFGS with a strong Wolfe line search
+(`torch.optim.LBFGS`) on the mean squared force error over the part's trials plus a ridge (Tikhonov)
+term, `ridge` times the mean squared target force times the mean square of the free parameters (the
+unconstrained values of `free_profiles`, 0 at the neutral profile). The profiles are identifiable only in
+part: mds2's four parameters matter up to a common factor, and the recordings constrain the static gain
+b0 / a2 away from the deepest point only weakly; without the ridge a fit wanders along these shallow
+valleys for thousands of evaluations into profiles whose static curves are off by orders of magnitude.
+The ridge picks the solution nearest the neutral profile, which keeps the oracle's static curves
+meaningful and gpr's targets comparable across parts (BENCHMARKS.md has the measurements).
 
-Stopping rule, per set: its learning rate halves after `patience` steps without an improvement of its loss
-by more than `tolerance` times the loss (or times 1e-3 of the mean squared target force, whichever is
-larger: a noise-free fit approaching zero loss converges too); it has converged once the rate has halved
-`decays` times, and it then leaves the batch; the fit ends when every set has converged or after
-`max_steps`. Each set keeps the parameters of its lowest loss, and each part the start with the lowest
-loss of all.
+Stopping rule, per start: every `check_every` L-BFGS iterations the lowest objective so far is compared with
+the one at the previous check; the start has converged when it fell by less than `tolerance` times the
+objective (or times 1e-3 of the mean squared target force, whichever is larger: a noise-free fit
+approaching zero loss converges too); otherwise it stops after `max_evaluations` loss-and-gradient
+evaluations. Each start keeps the parameters of its lowest objective, and each part the start with the
+lowest objective of all; the reported loss is the mean squared force error there.
 """
 
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import dataclass, fields, replace
-from typing import Any
+from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 
 from pipe.data.batches import TrialBatch, collate_trials
@@ -28,17 +36,18 @@ from pipe.data.preprocess import Profile
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
 from pipe.model.interfaces import ParameterHead
+from pipe.model.losses import masked_mse
 from pipe.model.pipe_model import PIPEModel
 
 
 @dataclass(frozen=True)
 class IdentificationSettings:
-    restarts: int = 3          # starts per part: the neutral profile and restarts - 1 random ones
-    lr: float = 0.02           # Adam's initial learning rate
-    patience: int = 50         # steps without a relative improvement of `tolerance` before the rate halves
-    tolerance: float = 1e-3
-    decays: int = 4            # a set has converged once its rate has halved this often
-    max_steps: int = 3000
+    restarts: int = 3             # starts per part: the neutral profile and restarts - 1 random ones
+    check_every: int = 20         # L-BFGS iterations between two convergence checks
+    tolerance: float = 1e-4       # converged once check_every iterations lower the loss by less than this share
+    max_evaluations: int = 3000   # loss-and-gradient evaluations per start at most
+    history: int = 20             # L-BFGS's memory: the last steps and gradient changes it keeps
+    ridge: float = 0.01           # weight of the pull towards the neutral profile (see the module's docstring)
 
     @classmethod
     def from_config(cls, values: dict[str, Any] | None) -> IdentificationSettings:
@@ -53,99 +62,85 @@ class IdentificationSettings:
 @dataclass
 class Identified:
     model: PIPEModel     # PIPE's encoder and dynamic model with the part's identified profiles as head
-    loss: float          # the kept start's lowest mean squared force error [N^2]
-    iterations: int      # Adam steps that start took until it converged (or max_steps)
+    loss: float          # the kept start's mean squared force error [N^2] where its objective was lowest
+    evaluations: int     # loss-and-gradient evaluations that start took until it converged (or the cap)
     converged: bool
 
 
-def _one_set(head: ParameterHead, template: ParameterHead, index: int) -> ParameterHead:
-    """A one-set free head holding set `index` of `head` (the sets lie along every parameter's first axis)."""
-    single = template.free_profiles(torch.zeros(1, dtype=torch.long))
-    with torch.no_grad():
-        for mine, theirs in zip(single.parameters(), head.parameters()):
-            mine.copy_(theirs[index:index + 1])
-    return single.eval().requires_grad_(False)
+class _OutOfEvaluations(Exception):
+    """Raised by the loss closure once a start has used `max_evaluations`."""
 
 
-def _starts(template: ParameterHead, rows: torch.Tensor, names: list[str], seed: int, restarts: int) -> ParameterHead:
-    """The free head of every (start, part) set, set k * parts + i for start k of part i: the neutral profile
-    for start 0; for the others, each part's random start from its own generator (seed, start, part name),
-    so that a part starts alike whichever parts it is fitted with."""
-    head = template.free_profiles(rows)
-    with torch.no_grad():
-        for k in range(1, restarts):
-            for i, name in enumerate(names):
-                generator = torch.Generator().manual_seed((seed * 1000 + k) * 2**32 + zlib.crc32(name.encode()))
-                drawn = template.free_profiles(torch.zeros(1, dtype=torch.long), generator)
-                for mine, theirs in zip(head.parameters(), drawn.parameters()):
-                    mine[k * len(names) + i] = theirs[0]
-    return head
+def start_head(template: ParameterHead, name: str, seed: int, start: int) -> ParameterHead:
+    """The free one-set head of a part's start: the neutral profile for start 0; for the others a random
+    start from a generator of its own (seed, start, part name), so that a part starts alike whichever parts
+    are identified with it. (torch's generator keeps 32 bits of a seed: numpy's SeedSequence mixes the
+    three into them.)"""
+    rows = torch.zeros(1, dtype=torch.long)
+    if start == 0:
+        return template.free_profiles(rows)
+    entropy = np.random.SeedSequence([seed, start, zlib.crc32(name.encode())]).generate_state(1)[0]
+    return template.free_profiles(rows, torch.Generator().manual_seed(int(entropy)))
 
 
-def _rows(batch: TrialBatch, keep: torch.Tensor) -> TrialBatch:
-    return TrialBatch(batch.part[keep], batch.depth[keep], batch.force[keep], batch.mask[keep], batch.dt)
+class StartFit(NamedTuple):
+    objective: float     # the lowest objective reached: the loss plus the ridge term
+    loss: float          # the mean squared force error there [N^2]
+    evaluations: int
+    converged: bool      # the stopping rule was met before max_evaluations
 
 
-def _fit(ctx: EvalContext, parts: list[PartData], profiles: list[list[Profile]],
-         settings: IdentificationSettings) -> list[Identified]:
-    template, count_parts = ctx.model.head, len(parts)
-    owner = torch.tensor([i for i, trials in enumerate(profiles) for _ in trials])      # part of each trial
-    row_set = torch.cat([owner + k * count_parts for k in range(settings.restarts)])   # set of each row
-    sets = settings.restarts * count_parts
-    head = _starts(template, row_set, [p.name for p in parts], ctx.seed, settings.restarts).train()
-    joint = ctx.model.with_head(head)
-    every_row = collate_trials([(0, p) for _ in range(settings.restarts) for trials in profiles for p in trials])
-    samples = torch.zeros(sets).index_add_(0, row_set, every_row.mask.sum(1).float())
-    power = torch.zeros(sets).index_add_(0, row_set, (every_row.force.pow(2) * every_row.mask).sum(1)) / samples
-    optimiser = torch.optim.Adam(head.parameters(), lr=settings.lr, fused=True)
-
-    best, reference = torch.full((sets,), torch.inf), torch.full((sets,), torch.inf)
-    waited, halvings, iterations = (torch.zeros(sets, dtype=torch.long) for _ in range(3))
+def fit_start(model: PIPEModel, head: ParameterHead, batch: TrialBatch,
+              settings: IdentificationSettings) -> StartFit:
+    """Fit one start's free head to a part's trials in place; it ends where its objective was lowest."""
+    joint = model.with_head(head.train())
+    z = torch.zeros(len(batch.part), head.latent_dim)
+    power = float(batch.force[batch.mask].pow(2).mean())
+    optimiser = torch.optim.LBFGS(head.parameters(), lr=1.0, max_iter=settings.check_every,
+                                  history_size=settings.history, line_search_fn="strong_wolfe")
+    best_loss, best_mse, evaluations = math.inf, math.inf, 0
     kept = [p.detach().clone() for p in head.parameters()]
-    fitting = None
-    with torch.enable_grad():
-        for _ in range(settings.max_steps):
-            active = halvings < settings.decays
-            if not active.any():
-                break
-            if fitting is None or not torch.equal(active, fitting):    # simulate the unconverged sets only
-                fitting = active
-                keep = active[row_set]
-                head.rows = row_set[keep]
-                batch = _rows(every_row, keep)
-                z = torch.zeros(len(head.rows), template.latent_dim)
-            optimiser.zero_grad()
-            error = ((joint(z, batch.depth, batch.dt) - batch.force).pow(2) * batch.mask).sum(1)
-            loss = torch.zeros(sets).index_add_(0, head.rows, error) / samples
-            loss.sum().backward()
-            current = torch.where(active, loss.detach(), torch.inf)
-            improved = current < best
-            best = torch.where(improved, current, best)
+
+    def closure() -> torch.Tensor:
+        nonlocal best_loss, best_mse, evaluations
+        if evaluations >= settings.max_evaluations:
+            raise _OutOfEvaluations
+        evaluations += 1
+        optimiser.zero_grad()
+        mse = masked_mse(joint(z, batch.depth, batch.dt), batch.force, batch.mask)
+        values = torch.cat([p.reshape(-1) for p in head.parameters()])
+        loss = mse + settings.ridge * power * values.pow(2).mean()
+        loss.backward()
+        if loss.item() < best_loss:
+            best_loss, best_mse = loss.item(), mse.item()
             for store, p in zip(kept, head.parameters()):
-                store[improved] = p.detach()[improved]
-            margin = settings.tolerance * torch.maximum(reference, 1e-3 * power)
-            progress = current < torch.where(reference.isinf(), torch.inf, reference - margin)
-            reference = torch.where(progress, current, reference)
-            waited = torch.where(progress, 0, waited + active.long())
-            stalled = waited >= settings.patience
-            halvings += stalled.long()
-            waited[stalled] = 0
-            iterations += active.long()
-            rate = torch.where(halvings < settings.decays, 0.5 ** halvings.float(), 0.0)
-            before = [p.detach().clone() for p in head.parameters()]
-            optimiser.step()
-            with torch.no_grad():      # each set's own learning rate: scale its share of the update
-                for p, old in zip(head.parameters(), before):
-                    p.copy_(old + rate.view(-1, *([1] * (p.dim() - 1))) * (p - old))
+                store.copy_(p.detach())
+        return loss
+
+    converged, previous = False, math.inf
+    with torch.enable_grad():
+        try:
+            while not converged:
+                optimiser.step(closure)
+                converged = previous - best_loss < settings.tolerance * max(best_loss, 1e-3 * power)
+                previous = best_loss
+        except _OutOfEvaluations:
+            pass
     with torch.no_grad():
         for p, v in zip(head.parameters(), kept):
             p.copy_(v)
-    results = []
-    for i in range(count_parts):
-        k = int(best[i::count_parts].argmin()) * count_parts + i
-        results.append(Identified(ctx.model.with_head(_one_set(head, template, k)), float(best[k]),
-                                  int(iterations[k]), bool(halvings[k] >= settings.decays)))
-    return results
+    head.eval().requires_grad_(False)
+    return StartFit(best_loss, best_mse, evaluations, converged)
+
+
+def _identify_part(ctx: EvalContext, part: PartData, trials: list[Profile],
+                   settings: IdentificationSettings) -> Identified:
+    batch = collate_trials([(0, p) for p in trials])
+    heads = [start_head(ctx.model.head, part.name, ctx.seed, start) for start in range(settings.restarts)]
+    fits = [fit_start(ctx.model, head, batch, settings) for head in heads]
+    best = min(range(len(fits)), key=lambda k: fits[k].objective)
+    return Identified(ctx.model.with_head(heads[best]), fits[best].loss, fits[best].evaluations,
+                      fits[best].converged)
 
 
 def identify(ctx: EvalContext, parts: list[PartData], target: str = "force",
@@ -157,9 +152,8 @@ def identify(ctx: EvalContext, parts: list[PartData], target: str = "force",
     if restarts is not None:
         settings = replace(settings, restarts=restarts)
     fits = ctx.cache.setdefault(f"identified_{target}_{settings.restarts}", {})
-    todo = list({p.name: p for p in parts if p.name not in fits}.values())
-    if todo:
-        profiles = [[Profile(p.time, p.depth, getattr(p, target)) for p in part.profiles] for part in todo]
-        for part, fitted in zip(todo, _fit(ctx, todo, profiles, settings)):
-            fits[part.name] = fitted
+    for part in parts:
+        if part.name not in fits:
+            trials = [Profile(p.time, p.depth, getattr(p, target)) for p in part.profiles]
+            fits[part.name] = _identify_part(ctx, part, trials, settings)
     return [fits[p.name] for p in parts]

@@ -110,10 +110,6 @@ class Oracle(Method):
     def _identified(self, ctx: EvalContext, part: PartData) -> Identified:
         return identify(ctx, [part], self.target)[0]
 
-    def predict_all(self, ctx, parts):
-        identify(ctx, parts, self.target)       # all test parts in one batched fit
-        return super().predict_all(ctx, parts)
-
     def predict(self, ctx, part):
         return model_forces(ctx, self._identified(ctx, part).model, ctx.latent(part), part)
 
@@ -122,7 +118,7 @@ class Oracle(Method):
 
     def diagnostics(self, ctx, part):
         fitted = self._identified(ctx, part)
-        return {"id_loss": fitted.loss, "id_steps": float(fitted.iterations), "id_converged": float(fitted.converged)}
+        return {"id_loss": fitted.loss, "id_evals": float(fitted.evaluations), "id_converged": float(fitted.converged)}
 
 
 @METHODS.register

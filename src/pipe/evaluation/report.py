@@ -18,7 +18,7 @@ from pipe.evaluation.spread import Spread, verdict  # noqa: E402
 
 COLUMNS = [("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("nrmse_fit_F", "NRMSE fit(F) [%]"),
            ("rms", "rms [N]"), ("rms_rel", "rms_rel"), ("static_rms", "static rms [N]"),
-           ("id_loss", "identification MSE [N^2]"), ("id_steps", "identification steps")]
+           ("id_loss", "identification MSE [N^2]"), ("id_evals", "identification evaluations")]
 
 
 def results_document(domain: str, counts: dict[str, int], results: dict[str, MethodResult],
