@@ -69,7 +69,7 @@ def fit_of(measured: np.ndarray, predicted: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ridge, rtol", [(0.0, 0.02), (0.01, 0.05)])
+@pytest.mark.parametrize("ridge, rtol", [(0.0, 0.02), (0.1, 0.05)])
 def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge, rtol):
     """On noise-free data simulated by the model itself: FIT(F) above 99 %, and the parameters that the force
     determines (mds2's are known up to a common factor) recovered, whatever PIPE's head has learnt; without
@@ -184,12 +184,12 @@ def test_the_ridge_pulls_the_identified_profiles_towards_the_neutral_one(ctx):
     far = part("f", 8.0)                       # a static gain of 8: b0 far above its scale
     context.index["f"] = 2
     fits = {}
-    for ridge in (0.0, 0.1):
+    for ridge in (0.0, 1.0):
         context.cache.clear()
         context.settings["identification"] |= {"ridge": ridge, "restarts": 1, "max_evaluations": 300}
         fitted = identify(context, [far])[0]
         fits[ridge] = (fitted.loss, torch.cat([p.ravel() for p in fitted.model.head.parameters()]).norm())
-    assert fits[0.0][0] < fits[0.1][0] and fits[0.1][1] < fits[0.0][1]
+    assert fits[0.0][0] < fits[1.0][0] and fits[1.0][1] < fits[0.0][1]
 
 
 def test_nearest_uses_the_closest_training_part(ctx):

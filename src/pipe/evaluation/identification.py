@@ -3,9 +3,15 @@ own recordings, as classical identification does (the oracle, oracle_clean and g
 
 Each part is fitted from several starts (`restarts`: the neutral profile, then random ones; see
 `ParameterHead.free_profiles`), each start on its own, by L-BFGS with a strong Wolfe line search
-(`torch.optim.LBFGS`) on the mean squared force error over the part's trials plus a ridge (Tikhonov)
-term, `ridge` times the mean squared target force times the mean square of the free parameters (the
-unconstrained values of `free_profiles`, 0 at the neutral profile). The profiles are identifiable only in
+(`torch.optim.LBFGS`) on the objective
+
+    log(MSE + 1e-6 P) + ridge * mean(v^2)
+
+with MSE the mean squared force error over the part's trials, P the mean squared target force and v the
+free parameters (the unconstrained values of `free_profiles`, 0 at the neutral profile). This is a MAP
+estimate with a Gaussian prior on v when the noise variance is unknown (profiling it out leaves the log of
+the MSE), so `ridge` weighs alike in every domain, whatever the noise and the forces; 1e-6 P is a floor
+for noise-free fits (within 0.1 % rms of the force counts as exact). The profiles are identifiable only in
 part: mds2's four parameters matter up to a common factor, and the recordings constrain the static gain
 b0 / a2 away from the deepest point only weakly; without the ridge a fit wanders along these shallow
 valleys for thousands of evaluations into profiles whose static curves are off by orders of magnitude.
@@ -13,11 +19,10 @@ The ridge picks the solution nearest the neutral profile, which keeps the oracle
 meaningful and gpr's targets comparable across parts (BENCHMARKS.md has the measurements).
 
 Stopping rule, per start: every `check_every` L-BFGS iterations the lowest objective so far is compared with
-the one at the previous check; the start has converged when it fell by less than `tolerance` times the
-objective (or times 1e-3 of the mean squared target force, whichever is larger: a noise-free fit
-approaching zero loss converges too); otherwise it stops after `max_evaluations` loss-and-gradient
-evaluations. Each start keeps the parameters of its lowest objective, and each part the start with the
-lowest objective of all; the reported loss is the mean squared force error there.
+the one at the previous check; the start has converged when it fell by less than `tolerance` (the MSE by
+less than that share); otherwise it stops after `max_evaluations` loss-and-gradient evaluations. Each start
+keeps the parameters of its lowest objective, and each part the start with the lowest objective of all; the
+reported loss is the mean squared force error there.
 """
 
 from __future__ import annotations
@@ -44,10 +49,10 @@ from pipe.model.pipe_model import PIPEModel
 class IdentificationSettings:
     restarts: int = 3             # starts per part: the neutral profile and restarts - 1 random ones
     check_every: int = 20         # L-BFGS iterations between two convergence checks
-    tolerance: float = 1e-4       # converged once check_every iterations lower the loss by less than this share
+    tolerance: float = 1e-4       # converged once check_every iterations lower the objective by less than this
     max_evaluations: int = 3000   # loss-and-gradient evaluations per start at most
     history: int = 20             # L-BFGS's memory: the last steps and gradient changes it keeps
-    ridge: float = 0.01           # weight of the pull towards the neutral profile (see the module's docstring)
+    ridge: float = 0.1            # weight of the pull towards the neutral profile (see the module's docstring)
 
     @classmethod
     def from_config(cls, values: dict[str, Any] | None) -> IdentificationSettings:
@@ -109,7 +114,7 @@ def fit_start(model: PIPEModel, head: ParameterHead, batch: TrialBatch,
         optimiser.zero_grad()
         mse = masked_mse(joint(z, batch.depth, batch.dt), batch.force, batch.mask)
         values = torch.cat([p.reshape(-1) for p in head.parameters()])
-        loss = mse + settings.ridge * power * values.pow(2).mean()
+        loss = torch.log(mse + 1e-6 * power) + settings.ridge * values.pow(2).mean()
         loss.backward()
         if loss.item() < best_loss:
             best_loss, best_mse = loss.item(), mse.item()
@@ -122,7 +127,7 @@ def fit_start(model: PIPEModel, head: ParameterHead, batch: TrialBatch,
         try:
             while not converged:
                 optimiser.step(closure)
-                converged = previous - best_loss < settings.tolerance * max(best_loss, 1e-3 * power)
+                converged = previous - best_loss < settings.tolerance
                 previous = best_loss
         except _OutOfEvaluations:
             pass
