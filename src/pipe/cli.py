@@ -29,9 +29,13 @@ def fail(message: str) -> int:
 def cmd_generate(args: argparse.Namespace) -> int:
     from pipe.synthetic import generate_dataset
 
+    if args.count is not None and args.family is None:
+        return fail("--count goes with --family: the number of parts of the family to generate")
     parts = [p.strip() for p in args.parts.split(",") if p.strip()] if args.parts else None
-    out = generate_dataset(args.out, seed=args.seed, parts=parts)
-    console.print(f"wrote the synthetic dataset to {out} (seed {args.seed}); check it with: pipe data check {out}")
+    count = 100 if args.count is None else args.count
+    out = generate_dataset(args.out, seed=args.seed, parts=parts, family=args.family, count=count)
+    what = f"{count} parts of the {args.family} family" if args.family else "the synthetic dataset"
+    console.print(f"wrote {what} to {out} (seed {args.seed}); check it with: pipe data check {out}")
     return 0
 
 
@@ -80,10 +84,13 @@ def build_parser() -> argparse.ArgumentParser:
     data = kinds.add_parser("data", help="datasets: generate the synthetic one, check any one")
     verbs = data.add_subparsers(dest="verb", required=True)
 
-    gen = verbs.add_parser("generate", help="write the synthetic dataset of the paper's 27 parts")
+    gen = verbs.add_parser("generate", help="write the synthetic dataset of the paper's 27 parts, or of a family")
     gen.add_argument("out", type=Path, help="output folder (a generated dataset there is replaced)")
     gen.add_argument("--seed", type=int, default=0)
-    gen.add_argument("--parts", help="comma-separated part names (default: all 27)")
+    chosen = gen.add_mutually_exclusive_group()
+    chosen.add_argument("--parts", help="comma-separated part names (default: all 27)")
+    chosen.add_argument("--family", help="parts of a parametric family instead: dsub, rect or pins (docs/synthetic.md)")
+    gen.add_argument("--count", type=int, help="how many parts of the family (default 100)")
     gen.set_defaults(run=cmd_generate)
 
     check = verbs.add_parser("check", help="validate a dataset folder and summarise each part")

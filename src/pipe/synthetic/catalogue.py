@@ -45,21 +45,30 @@ class Pin:
     length: float
     insert_depth: float         # how deep the robot inserts it
     taper: float = 0.0          # diameter change per mm of length (1/50 for taper pins)
+    chamfer: float | None = None  # length of the lead-in at the small end; None: the standard's (see lead_in)
 
     @property
     def contacts(self) -> int:
         return 0
 
+    @property
+    def lead_in(self) -> float:
+        """Length of the lead-in at the small end: the chamfer, by default 0.15 d (ISO 8734 dowel pins) or
+        the 0.05 d domed end of an ISO 2339 taper pin."""
+        if self.chamfer is not None:
+            return self.chamfer
+        return 0.15 * self.diameter if self.family == "dowel" else 0.05 * self.diameter
+
 
 # D-sub shells (standard density: pitch 2.77 mm, rows 2.84 mm, pins 1.0 mm; high density: 2.29 / 1.98 /
 # 0.76 mm). Shell E/A/B/C: flange 30.81/39.14/53.04/69.32 wide, mounting holes 24.99/33.32/47.04/63.50
 # apart, male D 16.92/25.25/38.96/55.42 wide and 7.9 high, flange 12.55 high, 6.0 mm mating length.
-_SHELL = {"E": (16.92, 30.81, 24.99), "A": (25.25, 39.14, 33.32), "B": (38.96, 53.04, 47.04),
+DSUB_SHELLS = {"E": (16.92, 30.81, 24.99), "A": (25.25, 39.14, 33.32), "B": (38.96, 53.04, 47.04),
           "C": (55.42, 69.32, 63.50)}
 
 
 def _dsub(name: str, shell: str, rows: tuple[int, ...], high_density: bool) -> Plug:
-    width, flange_w, holes = _SHELL[shell]
+    width, flange_w, holes = DSUB_SHELLS[shell]
     pitch, row_pitch, pin = (2.29, 1.98, 0.76) if high_density else (2.77, 2.84, 1.0)
     return Plug(name, "dsub", "dsub", width, 7.9, 6.0, rows, pitch, row_pitch, pin, detents=4,
                 detent_strength=0.9, body=(flange_w - 4.0, 15.5, 14.0), flange=(flange_w, 12.55, holes))

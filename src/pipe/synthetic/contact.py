@@ -69,9 +69,7 @@ def stop(s: np.ndarray, at: float, stiffness: float, soft: float = 0.01) -> np.n
 
 def lead_in_length(part: Plug | Pin) -> float:
     """Chamfer length that guides the part in: the receptacle's for plugs, the pin's own for pins."""
-    if isinstance(part, Plug):
-        return PLUG_LEAD_IN
-    return 0.15 * part.diameter if part.family == "dowel" else 0.05 * part.diameter
+    return PLUG_LEAD_IN if isinstance(part, Plug) else part.lead_in
 
 
 def contact_start(plug: Plug) -> float:

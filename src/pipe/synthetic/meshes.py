@@ -122,15 +122,13 @@ def plug_mesh(plug: Plug) -> trimesh.Trimesh:
 
 
 def pin_mesh(pin: Pin) -> trimesh.Trimesh:
-    """Surface of revolution about z: the 1:50 taper (taper pins) or a cylinder with a lead-in chamfer."""
+    """Surface of revolution about z: the 1:50 taper (taper pins) or a cylinder, with the lead-in at z = 0."""
     r0 = pin.diameter / 2
     r1 = r0 + pin.taper * pin.length / 2
-    if pin.family == "taper":  # both ends slightly domed
-        e = 0.1 * r0
-        profile = [(0, 0), (r0 - e, 0), (r0, e), (r1, pin.length - e), (r1 - e, pin.length), (0, pin.length)]
+    c, e = pin.lead_in, 0.1 * r0
+    if pin.family == "taper":  # both ends slightly domed (the small end's dome is its lead-in)
+        profile = [(0, 0), (r0 - c, 0), (r0, c), (r1, pin.length - e), (r1 - e, pin.length), (0, pin.length)]
     else:  # ISO 8734: chamfered lead-in at the inserted end, rounded back end
-        c = 0.15 * pin.diameter
-        e = 0.1 * r0
         profile = [(0, 0), (r0 - c, 0), (r0, c), (r0, pin.length - e), (r0 - e, pin.length), (0, pin.length)]
     return trimesh.creation.revolve(np.asarray(profile, dtype=float), sections=SECTIONS * 2)
 
