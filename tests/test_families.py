@@ -16,8 +16,7 @@ from pipe.errors import PipeError
 from pipe.synthetic import CATALOGUE, generate_dataset
 from pipe.synthetic.catalogue import DSUB_SHELLS
 from pipe.synthetic.contact import LATERAL_STIFFNESS, TrialConditions, static_curves
-from pipe.synthetic.families import (DSUB_ROWS, FAMILIES, PIN_DIAMETERS, PIN_LENGTHS, RECT_PITCHES,
-                                     family_parts)
+from pipe.synthetic.families import DSUB_ROWS, FAMILIES, PIN_DIAMETERS, PIN_LENGTHS, RECT_PITCHES, family_parts
 from pipe.synthetic.meshes import part_mesh
 
 
