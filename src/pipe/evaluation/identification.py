@@ -89,7 +89,7 @@ def start_head(template: ParameterHead, name: str, seed: int, start: int) -> Par
 
 
 class StartFit(NamedTuple):
-    objective: float     # the lowest objective reached: the loss plus the ridge term
+    objective: float     # the lowest objective reached: log(MSE + 1e-6 P) plus the ridge term
     loss: float          # the mean squared force error there [N^2]
     evaluations: int
     converged: bool      # the stopping rule was met before max_evaluations

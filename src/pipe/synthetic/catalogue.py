@@ -64,7 +64,7 @@ class Pin:
 # 0.76 mm). Shell E/A/B/C: flange 30.81/39.14/53.04/69.32 wide, mounting holes 24.99/33.32/47.04/63.50
 # apart, male D 16.92/25.25/38.96/55.42 wide and 7.9 high, flange 12.55 high, 6.0 mm mating length.
 DSUB_SHELLS = {"E": (16.92, 30.81, 24.99), "A": (25.25, 39.14, 33.32), "B": (38.96, 53.04, 47.04),
-          "C": (55.42, 69.32, 63.50)}
+               "C": (55.42, 69.32, 63.50)}
 
 
 def _dsub(name: str, shell: str, rows: tuple[int, ...], high_density: bool) -> Plug:
