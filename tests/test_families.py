@@ -14,9 +14,9 @@ from pipe.cli import main
 from pipe.data.check import check_dataset
 from pipe.errors import PipeError
 from pipe.synthetic import CATALOGUE, generate_dataset
-from pipe.synthetic.catalogue import DSUB_SHELLS
+from pipe.synthetic.catalogue import DSUB_ROWS, DSUB_SHELLS
 from pipe.synthetic.contact import LATERAL_STIFFNESS, TrialConditions, static_curves
-from pipe.synthetic.families import DSUB_ROWS, FAMILIES, PIN_DIAMETERS, PIN_LENGTHS, RECT_PITCHES, family_parts
+from pipe.synthetic.families import FAMILIES, PIN_DIAMETERS, PIN_LENGTHS, RECT_PITCHES, family_parts
 from pipe.synthetic.meshes import part_mesh
 
 

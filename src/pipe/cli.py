@@ -31,8 +31,10 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
     if args.count is not None and args.family is None:
         return fail("--count goes with --family: the number of parts of the family to generate")
+    from pipe.synthetic.families import DEFAULT_COUNT
+
     parts = [p.strip() for p in args.parts.split(",") if p.strip()] if args.parts else None
-    count = 100 if args.count is None else args.count
+    count = DEFAULT_COUNT if args.count is None else args.count
     out = generate_dataset(args.out, seed=args.seed, parts=parts, family=args.family, count=count)
     what = f"{count} parts of the {args.family} family" if args.family else "the synthetic dataset"
     console.print(f"wrote {what} to {out} (seed {args.seed}); check it with: pipe data check {out}")

@@ -67,21 +67,32 @@ DSUB_SHELLS = {"E": (16.92, 30.81, 24.99), "A": (25.25, 39.14, 33.32), "B": (38.
                "C": (55.42, 69.32, 63.50)}
 
 
-def _dsub(name: str, shell: str, rows: tuple[int, ...], high_density: bool) -> Plug:
+# Full inserts per shell: standard density in 2 rows, high density in 3.
+DSUB_ROWS = {
+    False: {"E": (5, 4), "A": (8, 7), "B": (13, 12), "C": (19, 18)},
+    True: {"E": (5, 5, 5), "A": (9, 9, 8), "B": (15, 15, 14), "C": (21, 21, 20)},
+}
+
+
+def dsub_plug(name: str, shell: str, high_density: bool, rows: tuple[int, ...] | None = None,
+              detent_strength: float = 0.9, backshell_length: float = 14.0) -> Plug:
+    """A D-sub plug in shell E/A/B/C; `rows` (contacts per row) defaults to the full insert."""
     width, flange_w, holes = DSUB_SHELLS[shell]
     pitch, row_pitch, pin = (2.29, 1.98, 0.76) if high_density else (2.77, 2.84, 1.0)
+    rows = DSUB_ROWS[high_density][shell] if rows is None else rows
     return Plug(name, "dsub", "dsub", width, 7.9, 6.0, rows, pitch, row_pitch, pin, detents=4,
-                detent_strength=0.9, body=(flange_w - 4.0, 15.5, 14.0), flange=(flange_w, 12.55, holes))
+                detent_strength=detent_strength, body=(flange_w - 4.0, 15.5, backshell_length),
+                flange=(flange_w, 12.55, holes))
 
 
 PLUGS = [
-    _dsub("dsub9", "E", (5, 4), False),
-    _dsub("dsub15", "A", (8, 7), False),
-    _dsub("dsub25", "B", (13, 12), False),
-    _dsub("dsub37", "C", (19, 18), False),
-    _dsub("vga", "E", (5, 5, 5), True),
-    _dsub("dsub26", "A", (9, 9, 8), True),
-    _dsub("dsub44", "B", (15, 15, 14), True),
+    dsub_plug("dsub9", "E", False),
+    dsub_plug("dsub15", "A", False),
+    dsub_plug("dsub25", "B", False),
+    dsub_plug("dsub37", "C", False),
+    dsub_plug("vga", "E", True),
+    dsub_plug("dsub26", "A", True),
+    dsub_plug("dsub44", "B", True),
     # DVI-I: D-shaped shell, 3 x 8 digital contacts plus 4 analog around the blade (counted as 5).
     Plug("dvi", "dvi", "dsub", 24.3, 8.9, 8.0, (8, 8, 8, 5), 1.905, 1.905, 0.6, 4, 1.1, (39.0, 16.0, 18.0)),
     Plug("hdmi", "hdmi", "hdmi", 13.9, 4.45, 9.0, (10, 9), 1.0, 1.0, 0.5, 2, 2.2, (21.0, 11.0, 30.0)),

@@ -21,13 +21,8 @@ from collections.abc import Callable
 import numpy as np
 
 from pipe.errors import PipeError
-from pipe.synthetic.catalogue import DSUB_SHELLS, Pin, Plug
+from pipe.synthetic.catalogue import DSUB_ROWS, DSUB_SHELLS, Pin, Plug, dsub_plug
 
-# D-sub contact positions per shell: standard density in 2 rows, high density in 3 (as in the catalogue).
-DSUB_ROWS = {
-    False: {"E": (5, 4), "A": (8, 7), "B": (13, 12), "C": (19, 18)},
-    True: {"E": (5, 5, 5), "A": (9, 9, 8), "B": (15, 15, 14), "C": (21, 21, 20)},
-}
 # Wire-to-board pitches [mm]: PicoBlade 1.25, JST PH 2.0, JST XH 2.5, 0.1" headers 2.54, Micro-Fit 3.0,
 # Mini-Fit Jr 4.2.
 RECT_PITCHES = (1.25, 2.0, 2.5, 2.54, 3.0, 4.2)
@@ -35,6 +30,7 @@ RECT_PITCHES = (1.25, 2.0, 2.5, 2.54, 3.0, 4.2)
 PIN_DIAMETERS = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 16.0, 20.0)
 PIN_LENGTHS = (8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30, 32, 35, 40, 45, 50, 55, 60, 65, 70, 75, 80, 85,
                90, 95, 100, 120, 140)
+DEFAULT_COUNT = 100    # parts of a family when no count is given
 
 
 def _loaded(rows: tuple[int, ...], rng: np.random.Generator) -> tuple[int, ...]:
@@ -50,11 +46,9 @@ def draw_dsub(name: str, rng: np.random.Generator) -> Plug:
     """A D-sub plug: shell E/A/B/C uniform, high density with probability 0.4."""
     shell = str(rng.choice(list(DSUB_SHELLS)))
     high_density = bool(rng.random() < 0.4)
-    width, flange_w, holes = DSUB_SHELLS[shell]
-    pitch, row_pitch, pin = (2.29, 1.98, 0.76) if high_density else (2.77, 2.84, 1.0)
-    return Plug(name, "dsub", "dsub", width, 7.9, 6.0, _loaded(DSUB_ROWS[high_density][shell], rng), pitch,
-                row_pitch, pin, detents=4, detent_strength=0.9 * rng.uniform(0.7, 1.3),
-                body=(flange_w - 4.0, 15.5, rng.uniform(10.0, 20.0)), flange=(flange_w, 12.55, holes))
+    rows = _loaded(DSUB_ROWS[high_density][shell], rng)
+    return dsub_plug(name, shell, high_density, rows, detent_strength=0.9 * rng.uniform(0.7, 1.3),
+                     backshell_length=rng.uniform(10.0, 20.0))
 
 
 def draw_rect(name: str, rng: np.random.Generator) -> Plug:

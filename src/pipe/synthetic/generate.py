@@ -15,7 +15,7 @@ from pipe.errors import PipeError
 from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.contact import TrialConditions, static_curves, target_depth
 from pipe.synthetic.dynamics import INTERNAL_RATE_HZ, ContactTables, command_profile, simulate, static_tcp_depth
-from pipe.synthetic.families import family_parts
+from pipe.synthetic.families import DEFAULT_COUNT, family_parts
 from pipe.synthetic.meshes import part_mesh
 
 SAMPLE_RATE_HZ = 500
@@ -140,7 +140,7 @@ def write_dataset(out: Path, parts: dict[str, Plug | Pin], command: str, trials:
 
 
 def generate_dataset(out: str | Path, seed: int = 0, parts: list[str] | None = None, family: str | None = None,
-                     count: int = 100) -> Path:
+                     count: int = DEFAULT_COUNT) -> Path:
     """Generate the synthetic dataset into `out`, replacing an earlier generated dataset there atomically:
     the catalogue's parts (all, or the named `parts`), or `count` parts of a `family` (`families`).
 
