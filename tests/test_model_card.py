@@ -26,6 +26,7 @@ def test_a_card_survives_the_round_trip_through_plain_types():
     ({"card_version": None}, "has no pipe model card"),
     ({"points": "many"}, "is broken (ValueError"),
     ({"train_size_mm": [3.0]}, "is broken (IndexError"),
+    ({"band": {"level": 0.9}}, "is broken (KeyError"),
     ({"colour": "red"}, "unknown ['colour']"),
 ])
 def test_an_incompatible_or_broken_card_is_refused_clearly(change, message):

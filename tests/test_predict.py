@@ -27,13 +27,19 @@ def test_predict_on_real_meshes_in_both_units(trained_run, real_meshes, tmp_path
         assert result.returncode == 0, result.stderr[-3000:]
         assert ("read in mm" if name.endswith(".stl") else "read in m ") in result.stdout
         theta = np.genfromtxt(out / "theta.csv", delimiter=",", names=True)
-        assert theta.dtype.names == ("p_z", "a0", "a1", "a2", "b0")
-        assert np.all(np.isfinite(theta.view((float, 5)))) and np.all(theta["a2"] > 0)
+        names = ("a0", "a1", "a2", "b0")
+        assert theta.dtype.names == ("p_z", *names, *(f"{n}_lower" for n in names), *(f"{n}_upper" for n in names))
+        assert np.all(np.isfinite(theta.view((float, 13)))) and np.all(theta["a2"] > 0)
+        assert all(np.all(theta[f"{n}_lower"] <= theta[f"{n}_upper"]) for n in names)
         force = np.genfromtxt(out / "force.csv", delimiter=",", names=True)
         assert force["p_z"].max() == pytest.approx(json.loads((out / "theta.json").read_text())["depth_mm"][-1])
         assert np.all(np.isfinite(force["F_z"])) and (out / "prediction.png").is_file()
         doc = json.loads((out / "theta.json").read_text())
         assert len(doc["local_models"]["b0"]["centre_mm"]) == 10
+        # the force band: the latent band widened by the offset the training run calibrated
+        offset = trained_run.card.band.offset_n
+        assert doc["band"]["calibrated_offset_N"] == pytest.approx(offset) and offset > 0
+        assert np.all(force["F_z_upper"] - force["F_z_lower"] >= 2 * offset - 1e-4)
 
 
 def test_predict_follows_a_given_trajectory(trained_run, real_meshes, tmp_path):

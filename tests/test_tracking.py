@@ -29,6 +29,8 @@ def test_a_domain_run_records_params_metrics_tags_artifacts_and_model(trained_ru
     for method in ("pipe", "oracle", "oracle_clean", "nearest", "gpr", "blackbox", "mean"):
         assert f"test/{method}/fit_F" in metrics and f"test/{method}/dsub26/rms" in metrics
     assert metrics["test/pipe/fit_F"] == pytest.approx(trained_run.pipe.domain["fit_F"])
+    assert 0 <= metrics["test/pipe/band_cover_latent"] <= metrics["test/pipe/band_cover"] <= 1   # PIPE's band
+    assert "test/nearest/band_cover" not in metrics                 # a baseline without a band reports none
     assert metrics["test/reconstruction/dsub26/nn_distance_mm"] > 0 and "test/reconstruction/chamfer_mm2" in metrics
     history = client.get_metric_history(run.info.run_id, "vae/train_loss")
     assert [m.step for m in history] == [0, 1]                       # one value per epoch

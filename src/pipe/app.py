@@ -70,8 +70,11 @@ def _predict(cfg: DictConfig) -> None:
     write_prediction(prediction, out, Path(cfg.mesh), str(cfg.run))
     for note in prediction.notes:
         console.print(note)
-    console.print(f"peak force {prediction.force.max():.2f} N, final {prediction.force[-1]:.2f} N; "
-                  f"theta.csv, theta.json, force.csv and prediction.png in {out}")
+    peak = int(prediction.force.argmax())
+    lower, upper = prediction.force_band[:, peak]
+    console.print(f"peak force {prediction.force[peak]:.2f} N ({prediction.band.level:.0%} band {lower:.2f} to "
+                  f"{upper:.2f} N), final {prediction.force[-1]:.2f} N; theta.csv, theta.json, force.csv and "
+                  f"prediction.png in {out}")
 
 
 def train() -> None:

@@ -31,9 +31,10 @@ from pipe.evaluation.evaluate import MethodResult, evaluate_methods, reconstruct
 from pipe.evaluation.report import spread_markdown, write_report
 from pipe.evaluation.spread import Spread, check_seeds, summarise, verdict
 from pipe.model import ltv
-from pipe.model.card import ModelCard
+from pipe.model.card import BandCard, ModelCard
 from pipe.model.interfaces import DynamicModel, ParameterHead
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.uncertainty import BandSettings
 from pipe.model.vae import PointCloudVAE
 from pipe.synthetic import generate_dataset
 from pipe.tracking import (
@@ -66,6 +67,7 @@ class RunResult:
     card: ModelCard
     seconds: dict[str, float] = field(default_factory=dict)
     mlflow_run_id: str | None = None
+    logvars: torch.Tensor | None = None    # the latent codes' log-variances, rows as latents
 
     @property
     def pipe(self) -> MethodResult:
@@ -128,15 +130,18 @@ def build_components(cfg: DictConfig) -> tuple[PointCloudVAE, ParameterHead, Dyn
     return encoder, head, dynamics
 
 
-def model_card(cfg: DictConfig, data: PreparedDomain, dynamics: DynamicModel) -> ModelCard:
-    """What predict.py needs besides the weights: preprocessing settings and the training parts' sizes."""
+def model_card(cfg: DictConfig, data: PreparedDomain, dynamics: DynamicModel, band_offset: float) -> ModelCard:
+    """What predict.py needs besides the weights: preprocessing settings, the training parts' sizes and the
+    prediction band's settings with its offset calibrated on the validation parts."""
     train = data.splits["train"]
     extents = [float(np.ptp(p.cloud.points, axis=0).max()) for p in train]
     force_scale, depth_scale = data_scales(train)
+    band = BandSettings.from_config(cfg.evaluation.get("band"))
     return ModelCard(domain=data.domain.name, points=int(cfg.data.points), cloud_seed=int(cfg.data.cloud_seed),
                      rate_hz=float(cfg.data.rate_hz), parameter_names=tuple(dynamics.parameter_names),
                      train_parts=data.domain.train, train_size_mm=(min(extents), max(extents)),
-                     depth_scale_mm=depth_scale, force_scale_n=force_scale)
+                     depth_scale_mm=depth_scale, force_scale_n=force_scale,
+                     band=BandCard(band.level, band.samples, band.seed, band_offset))
 
 
 def run_domain(cfg: DictConfig) -> RunResult:
@@ -235,17 +240,19 @@ def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, 
 
     all_parts = train + val + test
     index = {p.name: i for i, p in enumerate(all_parts)}
-    latents = model.latent(stack_clouds(all_parts))   # test clouds are only encoded, never trained on
+    latents, logvars = model.latent_distribution(stack_clouds(all_parts))   # test clouds are only encoded
     seconds["head"] = fit_head(cfg, model, latents, index, train, val, run_dir, resume, loggers)
 
     start = time.perf_counter()
     dt = 1.0 / cfg.data.rate_hz
-    ctx = EvalContext(model, latents, index, train, dt, cfg.seed, dict(cfg.evaluation), val=val)
+    ctx = EvalContext(model, latents, index, train, dt, cfg.seed, dict(cfg.evaluation), val=val, logvars=logvars)
     results = evaluate_methods(ctx, test, ["pipe", *cfg.evaluation.baselines])
     reconstruction = reconstruction_metrics(model.encoder, test)
     seconds["evaluation"] = time.perf_counter() - start
+    band = next(iter(results["pipe"].bands.values()))
     run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, latents, index,
-                    test, dt, results, reconstruction, model_card(cfg, data, model.dynamics), seconds)
+                    test, dt, results, reconstruction, model_card(cfg, data, model.dynamics, band.offset), seconds,
+                    logvars=logvars)
     (run_dir / "metrics.json").write_text(json.dumps(
         {"test": run.pipe.domain, "baselines": {n: r.domain for n, r in results.items() if n != "pipe"},
          "per_part": run.pipe.per_part, "reconstruction": reconstruction, "seconds": seconds}, indent=2) + "\n")

@@ -24,7 +24,8 @@ from omegaconf import DictConfig  # noqa: E402
 from pipe.data.dataset import Trial, read_numeric_csv  # noqa: E402
 from pipe.data.preprocess import PointCloud, cloud_from_mesh, resample  # noqa: E402
 from pipe.errors import PipeError  # noqa: E402
-from pipe.model.card import ModelCard  # noqa: E402
+from pipe.model.card import BandCard, ModelCard  # noqa: E402
+from pipe.model.uncertainty import BandSettings, force_band, theta_band  # noqa: E402
 from pipe.store import tracking_uri  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -41,6 +42,9 @@ class Prediction:
     force: np.ndarray           # (T,) N
     local_models: dict[str, Any] | None
     notes: list[str]
+    band: BandCard              # the band's level, latent draws and calibrated widening
+    force_band: np.ndarray      # (2, T) N: the calibrated band's lower and upper force
+    theta_band: np.ndarray      # (2, G, P): the latent band's lower and upper Theta at depth_grid
 
 
 def model_uri(run: str) -> str:
@@ -129,7 +133,7 @@ def predict(cfg: DictConfig) -> Prediction:
 def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig) -> Prediction:
     """A loaded model's prediction for `cfg.mesh`: sample the mesh, encode, Theta(p_z), simulate the force."""
     cloud, notes = sample_mesh(cfg, card)
-    z = model.latent(torch.from_numpy(cloud.points)[None])
+    z, logvar = model.latent_distribution(torch.from_numpy(cloud.points)[None])
     rate = card.rate_hz
     if cfg.trajectory:
         time, depth = load_trajectory(Path(cfg.trajectory), cfg.trajectory_columns, rate)
@@ -142,35 +146,50 @@ def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig) -> Pr
     grid = torch.linspace(0.0, depth_max, 201)[None]
     profile = model.profile(z, torch.tensor([depth_max]))
     theta = profile(grid)[0].numpy()
+    settings = BandSettings(card.band.level, card.band.samples, card.band.seed)
+    lower, upper = force_band(model, z[0], logvar[0], p, 1.0 / rate, settings)
+    force_limits = np.stack([lower[0].numpy() - card.band.offset_n, upper[0].numpy() + card.band.offset_n])
+    theta_limits = np.stack([t.numpy() for t in theta_band(model, z[0], logvar[0], depth_max, grid[0], settings)])
     raw = profile.raw
     local = None
     if all(hasattr(raw, k) for k in ("amplitude", "centre", "width")):   # local-model heads (gaussian)
         scale = profile.scale[:, None]
         local = {"amplitude": (raw.amplitude[0] * scale).tolist(), "centre_mm": raw.centre[0].tolist(),
                  "width_mm": raw.width[0].tolist()}
-    return Prediction(grid[0].numpy(), theta, list(card.parameter_names), time, depth, force, local, notes)
+    return Prediction(grid[0].numpy(), theta, list(card.parameter_names), time, depth, force, local, notes,
+                      card.band, force_limits, theta_limits)
 
 
 def write_prediction(pred: Prediction, out: Path, mesh: Path, run: str) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
-    header = ",".join(["p_z", *pred.parameter_names])
-    np.savetxt(out / "theta.csv", np.column_stack([pred.depth_grid, pred.theta]), delimiter=",", header=header,
-               comments="", fmt="%.6g")
-    np.savetxt(out / "force.csv", np.column_stack([pred.time, pred.depth, pred.force]), delimiter=",",
-               header="t,p_z,F_z", comments="", fmt="%.6g")
+    names = pred.parameter_names
+    header = ",".join(["p_z", *names, *(f"{n}_lower" for n in names), *(f"{n}_upper" for n in names)])
+    np.savetxt(out / "theta.csv", np.column_stack([pred.depth_grid, pred.theta, *pred.theta_band]), delimiter=",",
+               header=header, comments="", fmt="%.6g")
+    np.savetxt(out / "force.csv", np.column_stack([pred.time, pred.depth, pred.force, *pred.force_band]),
+               delimiter=",", header="t,p_z,F_z,F_z_lower,F_z_upper", comments="", fmt="%.6g")
     doc = {"mesh": str(mesh), "model": model_uri(run), "notes": pred.notes, "depth_mm": pred.depth_grid.tolist(),
            "theta": {n: pred.theta[:, j].tolist() for j, n in enumerate(pred.parameter_names)},
            "local_models": {n: {k: v[j] for k, v in pred.local_models.items()}
                             for j, n in enumerate(pred.parameter_names)} if pred.local_models else None,
-           "peak_force_N": float(pred.force.max()), "final_force_N": float(pred.force[-1])}
+           "peak_force_N": float(pred.force.max()), "final_force_N": float(pred.force[-1]),
+           "band": {"level": pred.band.level, "latent_draws": pred.band.samples,
+                    "calibrated_offset_N": pred.band.offset_n,
+                    "about": "force.csv F_z_lower/F_z_upper: the quantiles of the force over latent codes drawn from "
+                             "the encoder's distribution, widened by the offset calibrated on the validation parts; "
+                             "theta.csv <name>_lower/_upper: the latent quantiles alone"}}
     (out / "theta.json").write_text(json.dumps(doc, indent=2) + "\n")
     fig, axes = plt.subplots(1, 1 + len(pred.parameter_names), figsize=(4 * (1 + len(pred.parameter_names)), 3.4))
+    axes[0].fill_between(pred.time, *pred.force_band, color="k", alpha=0.15, lw=0,
+                         label=f"{pred.band.level:.0%} band (calibrated)")
     axes[0].plot(pred.time, pred.force, color="k", label="F_z predicted [N]")
     axes[0].plot(pred.time, pred.depth, color="tab:gray", label="p_z [mm]")
     axes[0].set_xlabel("time [s]")
     axes[0].legend(fontsize=7)
     axes[0].set_title(mesh.name)
     for j, (ax, name) in enumerate(zip(axes[1:], pred.parameter_names)):
+        ax.fill_between(pred.depth_grid, pred.theta_band[0, :, j], pred.theta_band[1, :, j], color="k", alpha=0.15,
+                        lw=0)
         ax.plot(pred.depth_grid, pred.theta[:, j], color="k")
         ax.set_title(name)
         ax.set_xlabel("p_z [mm]")

@@ -22,6 +22,7 @@ class EvalContext:
     settings: dict = field(default_factory=dict)   # per-baseline options from the `evaluation` config
     cache: dict = field(default_factory=dict)      # results shared between methods (e.g. oracle fits)
     val: list[PartData] = field(default_factory=list)   # for the baselines' hyperparameters and stopping
+    logvars: torch.Tensor | None = None   # (parts, latent) log-variances of the latent codes, for PIPE's band
 
     def batch(self, part: PartData) -> TrialBatch:
         """All trials of a part, padded, tagged with the part's latent row."""
@@ -29,6 +30,9 @@ class EvalContext:
 
     def latent(self, part: PartData) -> torch.Tensor:
         return self.latents[self.index[part.name]]
+
+    def logvar(self, part: PartData) -> torch.Tensor | None:
+        return None if self.logvars is None else self.logvars[self.index[part.name]]
 
     @property
     def scales(self) -> tuple[float, float]:

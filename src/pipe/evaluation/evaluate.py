@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -15,6 +15,7 @@ from pipe.evaluation.context import EvalContext
 from pipe.evaluation.methods import METHODS, Method
 from pipe.evaluation.metrics import force_metrics, mean_metrics, rms
 from pipe.model.chamfer import chamfer, mean_nearest_distance
+from pipe.model.uncertainty import ForceBands, band_metrics
 from pipe.model.vae import PointCloudVAE
 
 log = logging.getLogger(__name__)
@@ -25,6 +26,7 @@ class MethodResult:
     per_part: dict[str, dict[str, float]]      # metrics averaged over each test part's trials
     domain: dict[str, float]                   # averaged over the test parts
     forces: dict[str, list[np.ndarray]]        # predicted force of each test trial, for the plots
+    bands: dict[str, ForceBands] = field(default_factory=dict)   # per test part, where the method gives bands
 
 
 def static_metrics(method: Method, ctx: EvalContext, part: PartData, trial: int) -> dict[str, float]:
@@ -40,11 +42,15 @@ def static_metrics(method: Method, ctx: EvalContext, part: PartData, trial: int)
     return {"static_rms": error, "static_rms_rel": error / float(np.abs(truth.force).max())}
 
 
-def score(method: Method, ctx: EvalContext, part: PartData, forces: list[np.ndarray]) -> dict[str, float]:
-    """The paper's metrics against the method's target force, averaged over the part's trials, and the
-    method's own diagnostics."""
+def score(method: Method, ctx: EvalContext, part: PartData, forces: list[np.ndarray],
+          bands: ForceBands | None = None) -> dict[str, float]:
+    """The paper's metrics against the method's target force, averaged over the part's trials, the band's
+    coverage where the method gives bands, and the method's own diagnostics."""
     rows = [force_metrics(getattr(p, method.target), f, ctx.dt) | static_metrics(method, ctx, part, i)
             for i, (p, f) in enumerate(zip(part.profiles, forces))]
+    if bands is not None:
+        rows = [row | band_metrics(getattr(p, method.target), lower, upper, bands.offset)
+                for row, p, lower, upper in zip(rows, part.profiles, bands.lower, bands.upper)]
     keys = set.intersection(*(set(r) for r in rows))
     return mean_metrics([{k: r[k] for k in sorted(keys)} for r in rows]) | method.diagnostics(ctx, part)
 
@@ -66,8 +72,9 @@ def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -
             continue
         method.fit(ctx)
         forces = method.predict_all(ctx, test)
-        per_part = {part.name: score(method, ctx, part, forces[part.name]) for part in test}
-        results[name] = MethodResult(per_part, mean_metrics(list(per_part.values())), forces)
+        bands = {part.name: band for part in test if (band := method.band(ctx, part)) is not None}
+        per_part = {part.name: score(method, ctx, part, forces[part.name], bands.get(part.name)) for part in test}
+        results[name] = MethodResult(per_part, mean_metrics(list(per_part.values())), forces, bands)
     return results
 
 

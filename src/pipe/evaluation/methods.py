@@ -1,6 +1,6 @@
 """PIPE and the baselines it is compared with, behind one interface (DESIGN section 5).
 
-- pipe:     the trained model, from the part's latent code.
+- pipe:     the trained model, from the part's latent code (and a band from its latent distribution).
 - oracle:   the same dynamic model and profile structure fitted to the test part's own recordings from
             scratch, to convergence, best of several starts (classical system identification,
             `pipe.evaluation.identification`): an upper bound, since it uses the recordings PIPE does not need.
@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import copy
+import logging
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -29,7 +30,10 @@ from pipe.data.prepared import PartData
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.identification import Identified, identify
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.uncertainty import BandSettings, ForceBands, conformal_offset, force_band
 from pipe.registry import Registry
+
+log = logging.getLogger(__name__)
 
 
 class Method(ABC):
@@ -66,6 +70,10 @@ class Method(ABC):
         """Predicted quasi-static force [N] at the given depths [mm] (trajectory reaching depth_max), if any."""
         return None
 
+    def band(self, ctx: EvalContext, part: PartData) -> ForceBands | None:
+        """The nominal prediction band of each of the part's trials, if the method gives one (after `fit`)."""
+        return None
+
 
 METHODS: Registry[type[Method]] = Registry("method")
 
@@ -94,7 +102,32 @@ def model_static_force(model: PIPEModel, z: torch.Tensor, depth_max: float, dept
 
 @METHODS.register
 class PIPE(Method):
+    """PIPE's prediction from the part's mean latent code, with a band from its latent distribution
+    (`pipe.model.uncertainty`) calibrated on the validation parts."""
+
     name = "pipe"
+
+    def fit(self, ctx):
+        self.settings = BandSettings.from_config(ctx.settings.get("band"))
+        self.offset = 0.0
+        if ctx.logvars is None or not ctx.val:
+            log.info("PIPE's band is left uncalibrated: %s", "no validation parts" if ctx.logvars is not None
+                     else "no latent distributions")
+            return
+        bands = [self._latent_band(ctx, part) for part in ctx.val]
+        flat = lambda arrays: np.concatenate([a for band in arrays for a in band])   # noqa: E731
+        self.offset = conformal_offset(flat(b[0] for b in bands), flat(b[1] for b in bands),
+                                       flat([p.force for p in part.profiles] for part in ctx.val), self.settings.level)
+
+    def _latent_band(self, ctx: EvalContext, part: PartData) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        batch = ctx.batch(part)
+        lower, upper = force_band(ctx.model, ctx.latent(part), ctx.logvar(part), batch.depth, batch.dt, self.settings)
+        return unpad(lower.numpy(), part), unpad(upper.numpy(), part)
+
+    def band(self, ctx, part):
+        if ctx.logvars is None:
+            return None
+        return ForceBands(self.settings.level, self.offset, *self._latent_band(ctx, part))
 
     def predict(self, ctx, part):
         return model_forces(ctx, ctx.model, ctx.latent(part), part)

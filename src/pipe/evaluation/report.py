@@ -15,6 +15,7 @@ import torch  # noqa: E402
 
 from pipe.evaluation.evaluate import MethodResult  # noqa: E402
 from pipe.evaluation.spread import Spread, verdict  # noqa: E402
+from pipe.model.uncertainty import BandSettings, theta_band  # noqa: E402
 
 COLUMNS = [("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("nrmse_fit_F", "NRMSE fit(F) [%]"),
            ("rms", "rms [N]"), ("rms_rel", "rms_rel"), ("static_rms", "static rms [N]"),
@@ -47,11 +48,21 @@ def results_markdown(doc: dict) -> str:
         for name, m in methods.items():
             lines.append(f"| {part} | {name} | " + " | ".join(_cell(m["per_part"][part], k) for k, _ in COLUMNS)
                          + " |")
+    lines += _band_lines({k: f"{v:.2f}" for k, v in methods.get("pipe", {}).get("domain", {}).items()})
     lines += ["", "| test part | reconstruction: mean nearest-neighbour distance [mm] | the same on clouds "
               "normalised to the unit sphere | Chamfer [mm^2] |", "| --- | --- | --- | --- |"]
     lines += [f"| {part} | {r['nn_distance_mm']:.3f} | {r['nn_distance_unit_sphere']:.4f} | {r['chamfer_mm2']:.1f} |"
               for part, r in doc["reconstruction"].items()]
     return "\n".join(lines) + "\n"
+
+
+def _band_lines(pipe: dict[str, str]) -> list[str]:
+    """PIPE's band coverage on the test parts (`pipe.model.uncertainty`), where the results have it."""
+    if "band_cover" not in pipe:
+        return []
+    return ["", "PIPE's force band at its nominal level (evaluation.band.level): share of the measured test "
+                f"samples inside the band calibrated on the validation parts {pipe['band_cover']} (mean width "
+                f"{pipe['band_width']} N); inside the latent band alone {pipe['band_cover_latent']}."]
 
 
 def _digits(value: Spread, decimals: int) -> str:
@@ -70,6 +81,7 @@ def spread_markdown(domain: str, counts: dict[str, int], seeds: list[int], summa
         judged = "-" if name == "pipe" else verdict(pipe, metrics["fit_F"], "fit_F")
         lines.append(f"| {domain} | {name} | {counts['train']} | {counts['val']} | {counts['test']} | "
                      + " | ".join(str(metrics[k]) if k in metrics else "-" for k, _ in COLUMNS) + f" | {judged} |")
+    lines += _band_lines({k: str(v) for k, v in summary["pipe"].items()})
     lines += ["", "PIPE vs it: on FIT(F), `better` or `worse` only when the means differ by more than the two "
               "standard deviations added; `tie` otherwise.", "",
               "Reconstruction of the test clouds (mean over the test parts): mean nearest-neighbour distance "
@@ -86,7 +98,8 @@ def _common(arrays: list[np.ndarray]) -> np.ndarray:
 
 def plot_forces(parts, results: dict[str, MethodResult], dt: float, path: Path) -> None:
     """Measured vs predicted force per test part: mean over trials with the min-max spread (up to the
-    shortest trial), PIPE's prediction likewise, and the baselines' means."""
+    shortest trial), PIPE's mean prediction with its calibrated band (its limits' mean over the trials), and
+    the baselines' means."""
     fig, axes = plt.subplots(1, len(parts), figsize=(5 * len(parts), 3.6), squeeze=False)
     for ax, part in zip(axes[0], parts):
         measured = _common([p.force for p in part.profiles])
@@ -96,7 +109,11 @@ def plot_forces(parts, results: dict[str, MethodResult], dt: float, path: Path) 
         for name, result in results.items():
             pred = _common(result.forces[part.name])[:, : len(t)]
             if name == "pipe":
-                ax.fill_between(t, pred.min(0), pred.max(0), color="k", alpha=0.15, lw=0)
+                band = result.bands.get(part.name)
+                if band is not None:
+                    lower, upper = (_common(limits)[:, : len(t)].mean(0) for limits in band.calibrated())
+                    ax.fill_between(t, lower, upper, color="k", alpha=0.15, lw=0,
+                                    label=f"PIPE {band.level:.0%} band (mean over trials)")
                 ax.plot(t, pred.mean(0), color="k", label="PIPE")
             else:
                 ax.plot(t, pred.mean(0), lw=0.8, ls="--", label=name)
@@ -111,20 +128,28 @@ def plot_forces(parts, results: dict[str, MethodResult], dt: float, path: Path) 
 
 
 @torch.no_grad()
-def plot_theta(model, parts, latents: torch.Tensor, index: dict[str, int], path: Path) -> None:
-    """Theta(p_z) of each test part over its depth range, with the local models where the head has them."""
+def plot_theta(model, parts, latents: torch.Tensor, index: dict[str, int], path: Path,
+               logvars: torch.Tensor | None = None, band: BandSettings | None = None) -> None:
+    """Theta(p_z) of each test part over its depth range, with the local models where the head has them and
+    the latent band where the latent distributions are given."""
     names = model.dynamics.parameter_names
     fig, axes = plt.subplots(len(parts), len(names), figsize=(3.4 * len(names), 2.8 * len(parts)), squeeze=False)
     for row, part in zip(axes, parts):
         depth_max = float(np.mean([np.abs(p.depth).max() for p in part.profiles]))
         depth = torch.linspace(0, depth_max, 300)[None]
-        profile = model.profile(latents[index[part.name]][None], torch.tensor([depth_max]))
+        z = latents[index[part.name]]
+        profile = model.profile(z[None], torch.tensor([depth_max]))
         theta = profile(depth)[0].numpy()
         local = getattr(profile.raw, "weights", None)
+        limits = None
+        if logvars is not None:
+            limits = theta_band(model, z, logvars[index[part.name]], depth_max, depth[0], band or BandSettings())
         for j, ax in enumerate(row):
             if local is not None:  # each local model's contribution a_i Psi_i / sum Psi
                 parts_j = (local(depth)[0, :, j] * profile.raw.amplitude[0, j] * profile.scale[j]).numpy()
                 ax.plot(depth[0], parts_j, lw=0.6, alpha=0.6)
+            if limits is not None:
+                ax.fill_between(depth[0], limits[0][:, j], limits[1][:, j], color="k", alpha=0.15, lw=0)
             ax.plot(depth[0], theta[:, j], color="k", lw=1.5)
             ax.set_title(f"{part.name}: {names[j]}", fontsize=9)
             ax.set_xlabel("p_z [mm]")
@@ -192,7 +217,9 @@ def write_report(run, out: Path) -> list[Path]:
     for name, text in files.items():
         (out / name).write_text(text)
     plot_forces(run.test, run.results, run.dt, out / "forces.png")
-    plot_theta(run.model, run.test, run.latents, run.index, out / "theta.png")
+    band = run.card.band
+    plot_theta(run.model, run.test, run.latents, run.index, out / "theta.png", run.logvars,
+               BandSettings(band.level, band.samples, band.seed))
     plot_clouds(run.model.encoder, run.test, out / "point_clouds.png")
     plot_losses(run.run_dir, out / "losses.png")
     return sorted(out.iterdir())

@@ -12,7 +12,7 @@ from typing import Any
 from pipe import __version__
 from pipe.errors import PipeError
 
-CARD_VERSION = 1
+CARD_VERSION = 2   # 2: the prediction band (`band`)
 
 
 @dataclass(frozen=True)
@@ -22,6 +22,17 @@ class Units:
     length: str = "mm"   # point clouds, depth p_z, train_size_mm
     force: str = "N"
     time: str = "s"
+
+
+@dataclass(frozen=True)
+class BandCard:
+    """The force band predict.py draws (`pipe.model.uncertainty`): its nominal level, the latent draws and
+    their seed, and the widening calibrated on the validation parts at training time [N]."""
+
+    level: float = 0.9
+    samples: int = 64
+    seed: int = 0
+    offset_n: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -35,6 +46,7 @@ class ModelCard:
     train_size_mm: tuple[float, float]   # smallest and largest extent of the training parts' clouds
     depth_scale_mm: float                # typical insertion depth of the training trials
     force_scale_n: float                 # typical peak force of the training trials
+    band: BandCard = field(default_factory=BandCard)
     units: Units = field(default_factory=Units)
     pipe_version: str = __version__
     card_version: int = CARD_VERSION
@@ -65,6 +77,8 @@ class ModelCard:
                 train_parts=tuple(str(n) for n in doc["train_parts"]),
                 train_size_mm=(float(doc["train_size_mm"][0]), float(doc["train_size_mm"][1])),
                 depth_scale_mm=float(doc["depth_scale_mm"]), force_scale_n=float(doc["force_scale_n"]),
+                band=BandCard(level=float(doc["band"]["level"]), samples=int(doc["band"]["samples"]),
+                              seed=int(doc["band"]["seed"]), offset_n=float(doc["band"]["offset_n"])),
                 units=Units(**doc["units"]), pipe_version=str(doc["pipe_version"]), card_version=int(version))
         except (TypeError, ValueError, IndexError, KeyError) as exc:
             raise PipeError(f"the model card at {source} is broken ({type(exc).__name__}: {exc})") from None

@@ -40,13 +40,18 @@ class PIPEModel(nn.Module):
         return other
 
     @torch.no_grad()
-    def latent(self, points: torch.Tensor) -> torch.Tensor:
-        """The encoder's mean latent code of clouds (B, n, 3) in mm; the encoder is frozen after stage 1."""
+    def latent_distribution(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The encoder's latent mean and log-variance (B, latent) of clouds (B, n, 3) in mm; the encoder is
+        frozen after stage 1."""
         was_training = self.encoder.training
         self.encoder.eval()
-        mu = self.encoder.encode(points)[0]
+        mu, logvar = self.encoder.encode(points)
         self.encoder.train(was_training)
-        return mu
+        return mu, logvar
+
+    def latent(self, points: torch.Tensor) -> torch.Tensor:
+        """The mean latent code (B, latent) of clouds (B, n, 3) in mm, what PIPE predicts from."""
+        return self.latent_distribution(points)[0]
 
     def profile(self, z: torch.Tensor, depth_max: torch.Tensor) -> ScaledProfile:
         """Theta(p_z) in physical units for latents z (B, latent) and trajectories reaching depth_max (B,) mm."""
