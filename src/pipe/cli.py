@@ -1,4 +1,4 @@
-"""The `pipe` command line: `pipe data generate|check|pointcloud`."""
+"""The `pipe` command line: `pipe data generate|check|pointcloud` and `pipe report curve`."""
 
 from __future__ import annotations
 
@@ -80,6 +80,14 @@ def cmd_pointcloud(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_curve(args: argparse.Namespace) -> int:
+    from pipe.evaluation.curve import write_curve
+
+    written = write_curve(args.folders, args.out)
+    console.print(f"wrote {', '.join(str(p) for p in written)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pipe", description="PIPE: contact models of assembly tasks from CAD.")
     kinds = parser.add_subparsers(dest="kind", required=True)
@@ -107,6 +115,14 @@ def build_parser() -> argparse.ArgumentParser:
     cloud.add_argument("--seed", type=int, default=0)
     cloud.add_argument("--out", type=Path, help="write the points (n x 3, mm) as .npy")
     cloud.set_defaults(run=cmd_pointcloud)
+
+    report = kinds.add_parser("report", help="summaries over finished runs")
+    report_verbs = report.add_subparsers(dest="verb", required=True)
+    curve = report_verbs.add_parser("curve", help="the learning curve: held-out FIT(F) against the number of "
+                                                  "training parts, from learning-curve sweeps (README)")
+    curve.add_argument("folders", type=Path, nargs="+", help="one sweep folder per family (its runs' subfolders)")
+    curve.add_argument("--out", type=Path, required=True, help="folder for learning_curve.json, .md and .png")
+    curve.set_defaults(run=cmd_curve)
     return parser
 
 

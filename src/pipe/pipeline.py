@@ -97,14 +97,20 @@ class SeedsResult:
 
 
 def ensure_dataset(data_cfg: Mapping[str, Any]) -> Path:
-    """The dataset folder; the synthetic one is generated first when it is missing."""
+    """The dataset folder; a synthetic one (the catalogue, or `count` parts of a `family`) is generated first
+    when it is missing."""
     root = Path(data_cfg["dir"])
     if not (root / SPEC_FILE).is_file():
         generate = data_cfg.get("generate")
         if generate is None:
             raise PipeError(f"no {SPEC_FILE} here; point data.dir at a dataset folder", root)
-        log.info("generating the synthetic dataset into %s (seed %s)", root, generate["seed"])
-        generate_dataset(root, seed=int(generate["seed"]))
+        family = generate.get("family")
+        log.info("generating the synthetic dataset%s into %s (seed %s)",
+                 f" of {generate['count']} {family} parts" if family else "", root, generate["seed"])
+        if family:
+            generate_dataset(root, seed=int(generate["seed"]), family=str(family), count=int(generate["count"]))
+        else:
+            generate_dataset(root, seed=int(generate["seed"]))
     return root
 
 

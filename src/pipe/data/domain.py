@@ -24,6 +24,24 @@ class Domain:
         return self.train + self.val + self.test
 
 
+def numbered_part(prefix: str, number: int) -> str:
+    """The name of part `number` of a numbered set, e.g. a generated family's `pins_0007`."""
+    return f"{prefix}_{number:04d}"
+
+
+def numbered_split(prefix: str, split: str, test_count: int, val_count: int, train_count: int) -> list[str]:
+    """One split of a numbered set of parts, divided by number: test the first test_count, val the next
+    val_count, train the next train_count. A larger train_count only adds parts, so training sets of growing
+    size are nested and share the test and validation parts (a learning curve, conf/domain/curve.yaml)."""
+    first = {"test": 0, "val": test_count, "train": test_count + val_count}
+    counts = {"test": test_count, "val": val_count, "train": train_count}
+    if split not in first:
+        raise PipeError(f"numbered_split: unknown split {split!r}; choose one of {', '.join(SPLITS)}")
+    if min(counts.values()) < 0:
+        raise PipeError(f"numbered_split: part counts cannot be negative, got {counts}")
+    return [numbered_part(prefix, k) for k in range(first[split], first[split] + counts[split])]
+
+
 def domain_from_config(cfg: Mapping[str, Any]) -> Domain:
     """Build a domain from its config group; test parts must not be in train or val."""
     name = str(cfg.get("name", "?"))

@@ -20,6 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from pipe.data.domain import numbered_part
 from pipe.errors import PipeError
 from pipe.synthetic.catalogue import DSUB_ROWS, DSUB_SHELLS, Pin, Plug, dsub_plug
 
@@ -92,6 +93,6 @@ def family_parts(family: str, count: int, seed: int = 0) -> dict[str, Plug | Pin
     if count < 1:
         raise PipeError(f"--count must be at least 1, not {count}")
     draw = FAMILIES[family]
-    names = [f"{family}_{k:04d}" for k in range(count)]
+    names = [numbered_part(family, k) for k in range(count)]
     return {name: draw(name, np.random.default_rng([seed, zlib.crc32(family.encode()), k]))
             for k, name in enumerate(names)}

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# The learning curve (README, "Learning curve"): for the pins and rect families, one seeds=[0,1,2] run per
+# number of training parts (5, 10, 20, 50, 100) on the fixed 20 test and 10 validation parts of
+# conf/domain/curve.yaml, every run in MLflow, then the table and figure of `pipe report curve`.
+# At the paper's settings this takes about 4 hours on a 2-core CPU (README). It can be stopped and started
+# again: a run whose results.json exists is kept, an unfinished one is started over. Extra arguments are
+# Hydra overrides for every run.
+#   bash scripts/learning_curve.sh OUT [overrides...]       e.g. OUT = runs/curve
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out=${1:?give an output folder, e.g. runs/curve}
+shift
+for family in pins rect; do
+    for count in 5 10 20 50 100; do
+        run="$out/$family/train_$count"
+        [ -f "$run/results.json" ] && continue
+        rm -rf "$run"
+        .venv/bin/python train.py data=family "data.generate.family=$family" domain=curve \
+            "domain.train_count=$count" 'seeds=[0,1,2]' "hydra.run.dir=$run" trainer.progress_bar=false "$@"
+    done
+done
+.venv/bin/pipe report curve "$out/pins" "$out/rect" --out "$out"
