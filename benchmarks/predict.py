@@ -18,6 +18,7 @@ from timing import median_seconds
 
 from pipe.model.card import ModelCard
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.uncertainty import BandSettings, force_band, theta_band
 from pipe.pipeline import build_components
 from pipe.predict import predict_with, sample_mesh
 
@@ -39,13 +40,17 @@ def main() -> None:
                      rate_hz=float(train_cfg.data.rate_hz), parameter_names=tuple(dynamics.parameter_names),
                      train_parts=("none",), train_size_mm=(1.0, 100.0), depth_scale_mm=5.0, force_scale_n=10.0)
     cloud, _ = sample_mesh(cfg, card)
-    z = model.latent(torch.from_numpy(cloud.points)[None])
+    z, logvar = model.latent_distribution(torch.from_numpy(cloud.points)[None])
     depth = torch.linspace(0.0, 5.0, int(2.2 * card.rate_hz))[None]
+    band = BandSettings(card.band.level, card.band.samples, card.band.seed)
     steps = {
         "sample the mesh": lambda: sample_mesh(cfg, card),
         "encode": lambda: model.latent(torch.from_numpy(cloud.points)[None]),
         "Theta(p_z) on 201 depths": lambda: model.profile(z, torch.tensor([5.0]))(torch.linspace(0, 5, 201)[None]),
         "force along the ramp": lambda: model(z, depth, 1.0 / card.rate_hz),
+        f"force band ({band.samples} latent draws)": lambda: force_band(model, z[0], logvar[0], depth,
+                                                                      1.0 / card.rate_hz, band),
+        "Theta band on 201 depths": lambda: theta_band(model, z[0], logvar[0], 5.0, torch.linspace(0, 5, 201), band),
         "predict_with (all of it)": lambda: predict_with(model, card, cfg),
     }
     print(f"mesh {Path(args.mesh).name}, {card.points} points, median of {args.repeats}")

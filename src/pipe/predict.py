@@ -131,7 +131,8 @@ def predict(cfg: DictConfig) -> Prediction:
 
 @torch.no_grad()
 def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig) -> Prediction:
-    """A loaded model's prediction for `cfg.mesh`: sample the mesh, encode, Theta(p_z), simulate the force."""
+    """A loaded model's prediction for `cfg.mesh`: sample the mesh, encode, Theta(p_z), simulate the force,
+    and draw both bands (`pipe.model.uncertainty`; the force band widened by the card's calibrated offset)."""
     cloud, notes = sample_mesh(cfg, card)
     z, logvar = model.latent_distribution(torch.from_numpy(cloud.points)[None])
     rate = card.rate_hz
