@@ -40,6 +40,14 @@ def test_the_curve_domain_names_the_family_parts_the_generator_writes():
     assert largest.train[-1] == "pins_0129" and list(largest.test) == [f"pins_{k:04d}" for k in range(20)]
 
 
+def test_the_curve_domain_without_a_family_dataset_is_refused_with_a_hint():
+    from pipe.data.domain import domain_from_config
+
+    cfg = compose_config(["domain=curve"])      # the default data names no family
+    with pytest.raises(PipeError, match="names no family; add data=family"):
+        domain_from_config(cfg.domain)
+
+
 def write_run(folder, train: int, fits: dict[str, tuple[float, float]]) -> None:
     """A seeds run's results.json as pipeline.write_seeds_results writes it, with FIT(F) per method."""
     folder.mkdir(parents=True)

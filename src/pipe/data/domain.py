@@ -29,10 +29,14 @@ def numbered_part(prefix: str, number: int) -> str:
     return f"{prefix}_{number:04d}"
 
 
-def numbered_split(prefix: str, split: str, test_count: int, val_count: int, train_count: int) -> list[str]:
+def numbered_split(prefix: str | None, split: str, test_count: int, val_count: int, train_count: int) -> list[str]:
     """One split of a numbered set of parts, divided by number: test the first test_count, val the next
     val_count, train the next train_count. A larger train_count only adds parts, so training sets of growing
-    size are nested and share the test and validation parts (a learning curve, conf/domain/curve.yaml)."""
+    size are nested and share the test and validation parts (a learning curve, conf/domain/curve.yaml).
+    Without a prefix (a family domain over data that names no family) every split is empty:
+    `domain_from_config` then says what is missing."""
+    if prefix is None:
+        return []
     first = {"test": 0, "val": test_count, "train": test_count + val_count}
     counts = {"test": test_count, "val": val_count, "train": train_count}
     if split not in first:
@@ -45,6 +49,9 @@ def numbered_split(prefix: str, split: str, test_count: int, val_count: int, tra
 def domain_from_config(cfg: Mapping[str, Any]) -> Domain:
     """Build a domain from its config group; test parts must not be in train or val."""
     name = str(cfg.get("name", "?"))
+    if "family" in cfg and cfg["family"] is None:
+        raise PipeError(f"domain {name!r} splits the parts of a generated family, but the data config names no "
+                        "family; add data=family (e.g. data=family data.generate.family=pins)")
     splits = {}
     for split in SPLITS:
         parts = cfg.get(split)
