@@ -80,6 +80,13 @@ def test_the_curve_refuses_what_is_not_a_sweep_of_seeds_runs(tmp_path):
     with pytest.raises(PipeError, match="two runs of the sweep have 5 training parts"):
         read_curve([tmp_path / "a"])
     assert pipe_main(["report", "curve", str(tmp_path / "missing"), "--out", str(tmp_path / "out")]) == 2
+    (tmp_path / "b" / "x").mkdir(parents=True)
+    (tmp_path / "b" / "x" / "results.json").write_text("{broken")
+    with pytest.raises(PipeError, match="is not valid JSON"):
+        read_curve([tmp_path / "b"])
+    (tmp_path / "b" / "x" / "results.json").write_text("[1, 2]")
+    with pytest.raises(PipeError, match="is not the results.json of a `seeds=` run"):
+        read_curve([tmp_path / "b"])
 
 
 @pytest.mark.slow

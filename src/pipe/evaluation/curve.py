@@ -35,8 +35,11 @@ def read_curve(folders: list[Path], metric: str = METRIC) -> Curve:
                             "sweep folder of a learning-curve multirun", folder)
         family = curve.setdefault(Path(folder).name, {})
         for document in documents:
-            doc = json.loads(document.read_text())
-            if "methods" not in doc or "parts" not in doc:
+            try:
+                doc = json.loads(document.read_text())
+            except json.JSONDecodeError as exc:
+                raise PipeError(f"is not valid JSON ({exc})", document) from None
+            if not isinstance(doc, dict) or "methods" not in doc or "parts" not in doc:
                 raise PipeError("is not the results.json of a `seeds=` run (mean ± std over seeds)", document)
             count = int(doc["parts"]["train"])
             for method, metrics in doc["methods"].items():
