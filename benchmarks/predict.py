@@ -18,7 +18,7 @@ from timing import median_seconds
 
 from pipe.model.card import ModelCard
 from pipe.model.pipe_model import PIPEModel
-from pipe.model.uncertainty import BandSettings, force_band, theta_band
+from pipe.model.uncertainty import force_band, theta_band
 from pipe.pipeline import build_components
 from pipe.predict import predict_with, sample_mesh
 
@@ -42,7 +42,7 @@ def main() -> None:
     cloud, _ = sample_mesh(cfg, card)
     z, logvar = model.latent_distribution(torch.from_numpy(cloud.points)[None])
     depth = torch.linspace(0.0, 5.0, int(2.2 * card.rate_hz))[None]
-    band = BandSettings(card.band.level, card.band.samples, card.band.seed)
+    band = card.band.settings
     steps = {
         "sample the mesh": lambda: sample_mesh(cfg, card),
         "encode": lambda: model.latent(torch.from_numpy(cloud.points)[None]),

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import fields
 from pathlib import Path
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 
 class PipeError(Exception):
@@ -19,3 +24,14 @@ class PipeError(Exception):
 
 class DatasetError(PipeError):
     """A dataset folder, its dataset.yaml, a mesh or a trial CSV breaks the dataset contract."""
+
+
+def options_dataclass(cls: type[T], values: Mapping[str, Any] | None, section: str) -> T:
+    """The settings dataclass `cls` built from a config section's options; an unknown option is refused,
+    naming the section and the options it knows."""
+    values = dict(values or {})
+    known = [f.name for f in fields(cls)]
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise PipeError(f"unknown {section} option(s) {unknown}; known: {known}")
+    return cls(**values)

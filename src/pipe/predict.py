@@ -25,7 +25,7 @@ from pipe.data.dataset import Trial, read_numeric_csv  # noqa: E402
 from pipe.data.preprocess import PointCloud, cloud_from_mesh, resample  # noqa: E402
 from pipe.errors import PipeError  # noqa: E402
 from pipe.model.card import BandCard, ModelCard  # noqa: E402
-from pipe.model.uncertainty import BandSettings, force_band, theta_band  # noqa: E402
+from pipe.model.uncertainty import force_band, theta_band  # noqa: E402
 from pipe.store import tracking_uri  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -147,7 +147,7 @@ def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig) -> Pr
     grid = torch.linspace(0.0, depth_max, 201)[None]
     profile = model.profile(z, torch.tensor([depth_max]))
     theta = profile(grid)[0].numpy()
-    settings = BandSettings(card.band.level, card.band.samples, card.band.seed)
+    settings = card.band.settings
     lower, upper = force_band(model, z[0], logvar[0], p, 1.0 / rate, settings)
     force_limits = np.stack([lower[0].numpy() - card.band.offset_n, upper[0].numpy() + card.band.offset_n])
     theta_limits = np.stack([t.numpy() for t in theta_band(model, z[0], logvar[0], depth_max, grid[0], settings)])

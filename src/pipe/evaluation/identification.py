@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 import zlib
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -38,7 +38,7 @@ import torch
 from pipe.data.batches import TrialBatch, collate_trials
 from pipe.data.prepared import PartData
 from pipe.data.preprocess import Profile
-from pipe.errors import PipeError
+from pipe.errors import options_dataclass
 from pipe.evaluation.context import EvalContext
 from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import masked_mse
@@ -56,12 +56,7 @@ class IdentificationSettings:
 
     @classmethod
     def from_config(cls, values: dict[str, Any] | None) -> IdentificationSettings:
-        values = dict(values or {})
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise PipeError(f"unknown evaluation.identification option(s) {sorted(unknown)}; "
-                            f"known: {[f.name for f in fields(cls)]}")
-        return cls(**values)
+        return options_dataclass(cls, values, "evaluation.identification")
 
 
 @dataclass

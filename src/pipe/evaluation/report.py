@@ -217,9 +217,7 @@ def write_report(run, out: Path) -> list[Path]:
     for name, text in files.items():
         (out / name).write_text(text)
     plot_forces(run.test, run.results, run.dt, out / "forces.png")
-    band = run.card.band
-    plot_theta(run.model, run.test, run.latents, run.index, out / "theta.png", run.logvars,
-               BandSettings(band.level, band.samples, band.seed))
+    plot_theta(run.model, run.test, run.latents, run.index, out / "theta.png", run.logvars, run.card.band.settings)
     plot_clouds(run.model.encoder, run.test, out / "point_clouds.png")
     plot_losses(run.run_dir, out / "losses.png")
     return sorted(out.iterdir())

@@ -11,6 +11,7 @@ from typing import Any
 
 from pipe import __version__
 from pipe.errors import PipeError
+from pipe.model.uncertainty import BandSettings
 
 CARD_VERSION = 2   # 2: the prediction band (`band`)
 
@@ -33,6 +34,11 @@ class BandCard:
     samples: int = 64
     seed: int = 0
     offset_n: float = 0.0
+
+    @property
+    def settings(self) -> BandSettings:
+        """The latent draws' settings, as `pipe.model.uncertainty` takes them."""
+        return BandSettings(self.level, self.samples, self.seed)
 
 
 @dataclass(frozen=True)

@@ -18,13 +18,13 @@ independent, so the held-out test coverage is the honest figure, and the results
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
-from pipe.errors import PipeError
+from pipe.errors import PipeError, options_dataclass
 
 
 @dataclass(frozen=True)
@@ -41,12 +41,7 @@ class BandSettings:
 
     @classmethod
     def from_config(cls, values: dict[str, Any] | None) -> BandSettings:
-        values = dict(values or {})
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise PipeError(f"unknown evaluation.band option(s) {sorted(unknown)}; "
-                            f"known: {[f.name for f in fields(cls)]}")
-        return cls(**values)
+        return options_dataclass(cls, values, "evaluation.band")
 
     @property
     def quantiles(self) -> tuple[float, float]:
