@@ -28,9 +28,10 @@ DEPTH = 6.0 * np.clip(TIME / 1.4, 0, 1)
 
 
 def part(name: str, gain: float, trials: int = 3, noise: float = 0.0) -> PartData:
-    """A part whose force is simulated by mds2 itself with constant parameters and static gain `gain`; with
+    """A part whose force is simulated by mds2 itself with constant parameters and static gain `gain`, away
+    from the neutral profile (which has a2 = 1 and mds2's 0.02 s time constant: a1 / a2 = 0.04); with
     `noise`, the measured force has Gaussian noise of that standard deviation [N] and the clean one not."""
-    theta = torch.tensor([4e-4, 0.04, 1.0, gain]).expand(1, len(TIME), 4)
+    theta = torch.tensor([2e-3, 0.1, 2.0, 2.0 * gain]).expand(1, len(TIME), 4)
     force = MDS2()(theta, torch.tensor(DEPTH, dtype=torch.float32)[None], DT)[0].numpy()
     cloud = PointCloud(np.zeros((16, 3), np.float32), np.zeros(3), "volume")
     static = StaticCurve(DEPTH[:: 10].copy(), gain * DEPTH[:: 10])
@@ -69,11 +70,14 @@ def fit_of(measured: np.ndarray, predicted: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ridge, rtol", [(0.0, 0.02), (0.1, 0.05)])
+@pytest.mark.parametrize("ridge, rtol", [(0.0, 0.03), (0.1, 0.05)])
 def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge, rtol):
-    """On noise-free data simulated by the model itself: FIT(F) above 99 %, and the parameters that the force
-    determines (mds2's are known up to a common factor) recovered, whatever PIPE's head has learnt; without
-    the ridge within 2 %, with the default ridge (a pull towards the neutral profile) within 5 %."""
+    """On noise-free data simulated by the model itself (parameters away from the neutral profile): FIT(F)
+    above 99 %, and the parameters that the force determines recovered, whatever PIPE's head has learnt:
+    the static gain b0 / a2 at every depth (without the ridge within 3 %, with the default ridge, a pull
+    towards the neutral profile, within 5 %), and the time constants a1 / a2 and a0 / a2 at the deepest point,
+    where the stop excites the dynamics (along the slow ramp the force barely depends on them; mds2's
+    parameters are known up to a common factor)."""
     context, test = ctx
     context.settings["identification"]["ridge"] = ridge
     with torch.no_grad():                       # the oracle does not start from PIPE: spoil PIPE's head
@@ -89,7 +93,8 @@ def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge, rtol
     depth = torch.linspace(0.5, 6.0, 12)[None]
     a0, a1, a2, b0 = fitted.model.profile(context.latent(test)[None], torch.tensor([6.0]))(depth)[0].T
     np.testing.assert_allclose((b0 / a2).numpy(), 2.0, rtol=rtol)
-    np.testing.assert_allclose((a1 / a2).numpy(), 0.04, rtol=0.1)     # the time constant [s]
+    assert float(a1[-1] / a2[-1]) == pytest.approx(0.05, rel=0.05)     # s
+    assert float(a0[-1] / a2[-1]) == pytest.approx(1e-3, rel=0.15)     # s^2
 
 
 @pytest.mark.slow

@@ -55,6 +55,10 @@ def prepare_domain(root: str | Path, data_cfg: Mapping[str, Any], domain_cfg: Ma
 
 def data_scales(parts: list[PartData]) -> tuple[float, float]:
     """Typical force [N] and depth [mm] of the parts' trials: means of their largest magnitudes."""
-    profiles = [p for part in parts for p in part.profiles]
+    return profile_scales([p for part in parts for p in part.profiles])
+
+
+def profile_scales(profiles: list[Profile]) -> tuple[float, float]:
+    """Typical force [N] and depth [mm] of these trials: means of their largest magnitudes."""
     return (float(np.mean([np.abs(p.force).max() for p in profiles])),
             float(np.mean([np.abs(p.depth).max() for p in profiles])))

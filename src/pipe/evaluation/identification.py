@@ -18,6 +18,12 @@ valleys for thousands of evaluations into profiles whose static curves are off b
 The ridge picks the solution nearest the neutral profile, which keeps the oracle's static curves
 meaningful and gpr's targets comparable across parts (BENCHMARKS.md has the measurements).
 
+The parameters are scaled by the part's own recordings (`DynamicModel.parameter_scales` of its trials' typical
+force and depth), not by the training parts': the neutral profile, the random starts and the ridge's centre
+are the part's own, so a part's fit does not depend on what PIPE was trained on (the oracle of a learning
+curve is the same at every training-set size). With `cache` set, fits are stored in and reused from that
+folder (`pipe.evaluation.fit_cache`).
+
 Stopping rule, per start: every `check_every` L-BFGS iterations the lowest objective so far is compared with
 the one at the previous check; the start has converged when it fell by less than `tolerance` (the MSE by
 less than that share); otherwise it stops after `max_evaluations` loss-and-gradient evaluations. Each start
@@ -28,18 +34,21 @@ reported loss is the mean squared force error there.
 from __future__ import annotations
 
 import math
+import os
 import zlib
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from pipe.data.batches import TrialBatch, collate_trials
-from pipe.data.prepared import PartData
+from pipe.data.prepared import PartData, profile_scales
 from pipe.data.preprocess import Profile
 from pipe.errors import options_dataclass
 from pipe.evaluation.context import EvalContext
+from pipe.evaluation.fit_cache import fit_key, load_fit, store_fit
 from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import masked_mse
 from pipe.model.pipe_model import PIPEModel
@@ -53,6 +62,8 @@ class IdentificationSettings:
     max_evaluations: int = 3000   # loss-and-gradient evaluations per start at most
     history: int = 20             # L-BFGS's memory: the last steps and gradient changes it keeps
     ridge: float = 0.1            # weight of the pull towards the neutral profile (see the module's docstring)
+    cache: str | None = None      # a folder (relative: to the project root) to store fits in and reuse them
+                                  # from; None: within the run only
 
     @classmethod
     def from_config(cls, values: dict[str, Any] | None) -> IdentificationSettings:
@@ -136,11 +147,35 @@ def fit_start(model: PIPEModel, head: ParameterHead, batch: TrialBatch,
 def _identify_part(ctx: EvalContext, part: PartData, trials: list[Profile],
                    settings: IdentificationSettings) -> Identified:
     batch = collate_trials([(0, p) for p in trials])
+    scaled = ctx.model.with_head(ctx.model.head, ctx.model.dynamics.parameter_scales(*profile_scales(trials)))
     heads = [start_head(ctx.model.head, part.name, ctx.seed, start) for start in range(settings.restarts)]
-    fits = [fit_start(ctx.model, head, batch, settings) for head in heads]
+    fits = [fit_start(scaled, head, batch, settings) for head in heads]
     best = min(range(len(fits)), key=lambda k: fits[k].objective)
-    return Identified(ctx.model.with_head(heads[best]), fits[best].loss, fits[best].evaluations,
+    return Identified(scaled.with_head(heads[best]), fits[best].loss, fits[best].evaluations,
                       fits[best].converged)
+
+
+def _identify_cached(ctx: EvalContext, part: PartData, trials: list[Profile], target: str,
+                     settings: IdentificationSettings) -> Identified:
+    """`_identify_part`, through the folder `settings.cache` where one is set."""
+    if settings.cache is None:
+        return _identify_part(ctx, part, trials, settings)
+    folder = Path(os.environ.get("PROJECT_ROOT", ".")) / settings.cache   # a relative folder: from the root
+    decisive = {name: value for name, value in asdict(settings).items() if name != "cache"}
+    seed = ctx.seed if settings.restarts > 1 else None      # the neutral start alone draws nothing
+    key = fit_key(part.name, trials, target, decisive, seed, ctx.dt, ctx.model.head, ctx.model.dynamics)
+    stored = load_fit(folder, part.name, key)
+    if stored is not None:
+        head = ctx.model.head.free_profiles(torch.zeros(1, dtype=torch.long))
+        head.load_state_dict(stored["head"])
+        head.eval().requires_grad_(False)
+        return Identified(ctx.model.with_head(head, stored["theta_scale"]), stored["loss"], stored["evaluations"],
+                          stored["converged"])
+    fitted = _identify_part(ctx, part, trials, settings)
+    store_fit(folder, part.name, key, {"head": fitted.model.head.state_dict(), "theta_scale": fitted.model.theta_scale,
+                                       "loss": fitted.loss, "evaluations": fitted.evaluations,
+                                       "converged": fitted.converged})
+    return fitted
 
 
 def identify(ctx: EvalContext, parts: list[PartData], target: str = "force",
@@ -155,5 +190,5 @@ def identify(ctx: EvalContext, parts: list[PartData], target: str = "force",
     for part in parts:
         if part.name not in fits:
             trials = [Profile(p.time, p.depth, getattr(p, target)) for p in part.profiles]
-            fits[part.name] = _identify_part(ctx, part, trials, settings)
+            fits[part.name] = _identify_cached(ctx, part, trials, target, settings)
     return [fits[p.name] for p in parts]

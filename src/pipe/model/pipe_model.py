@@ -33,10 +33,11 @@ class PIPEModel(nn.Module):
         self.encoder, self.head, self.dynamics = encoder, head, dynamics
         self.register_buffer("theta_scale", dynamics.parameter_scales(force_scale, depth_scale).float())
 
-    def with_head(self, head: ParameterHead) -> PIPEModel:
-        """The same encoder, dynamic model and scales with another head (e.g. one identified per part)."""
+    def with_head(self, head: ParameterHead, theta_scale: torch.Tensor | None = None) -> PIPEModel:
+        """The same encoder and dynamic model with another head (e.g. one identified per part), and the same
+        parameter scales unless others are given."""
         other = PIPEModel(self.encoder, head, self.dynamics)
-        other.theta_scale = self.theta_scale.clone()
+        other.theta_scale = (self.theta_scale if theta_scale is None else theta_scale).float().clone()
         return other
 
     @torch.no_grad()

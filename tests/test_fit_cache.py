@@ -1,0 +1,120 @@
+"""Identification from the part's own scales, and the folder of stored fits (pipe.evaluation.fit_cache)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_baselines import DT, part
+
+from pipe.data.preprocess import Profile
+from pipe.evaluation import identification
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.fit_cache import fit_key
+from pipe.evaluation.identification import identify
+from pipe.model import ltv
+from pipe.model.pipe_model import PIPEModel
+from pipe.plugins.encoder.pointnet import PointNetVAE
+from pipe.plugins.head.gaussian import GaussianHead
+from pipe.plugins.model.mds2 import MDS2
+
+SETTINGS = {"restarts": 2, "max_evaluations": 60}
+
+
+@pytest.fixture(autouse=True)
+def compiled_simulator():
+    previous = ltv.get_backend()
+    ltv.set_backend("compiled")
+    yield
+    ltv.set_backend(previous)
+
+
+def context(force_scale: float = 10.0, seed: int = 0, **settings) -> EvalContext:
+    torch.manual_seed(0)
+    model = PIPEModel(PointNetVAE(num_points=16), GaussianHead(32, 4), MDS2(), force_scale=force_scale,
+                      depth_scale=6.0)
+    return EvalContext(model, torch.zeros(2, 32), {"t": 0, "u": 1}, [], DT, seed=seed,
+                       settings={"identification": SETTINGS | settings})
+
+
+fitted_part = part("t", 2.0)
+
+
+def forces(ctx: EvalContext, fitted) -> np.ndarray:
+    """The identified model's force on the fitted part's trials."""
+    batch = ctx.batch(fitted_part)
+    with torch.no_grad():
+        return fitted.model(torch.zeros(len(batch.part), 32), batch.depth, DT).numpy()
+
+
+def test_a_fit_does_not_depend_on_the_training_parts_scales():
+    """The parameters are scaled by the part's own recordings: models trained on data of other force scales
+    identify the part alike (the learning curve's oracle is the same at every training-set size)."""
+    small, large = context(force_scale=1.0), context(force_scale=100.0)
+    a, b = identify(small, [fitted_part])[0], identify(large, [fitted_part])[0]
+    assert a.evaluations == b.evaluations and a.loss == b.loss
+    np.testing.assert_array_equal(forces(small, a), forces(large, b))
+    peak = np.mean([np.abs(p.force).max() for p in fitted_part.profiles])    # the part's own, about 12 N
+    torch.testing.assert_close(a.model.theta_scale, MDS2().parameter_scales(peak, 6.0).float())
+
+
+def test_a_stored_fit_is_reused_by_a_later_run_without_fitting_again(tmp_path, monkeypatch):
+    first = context(cache=str(tmp_path))
+    fitted = identify(first, [fitted_part])[0]
+    assert len(list(tmp_path.glob("t-*.pt"))) == 1
+
+    def refuse(*args):
+        raise AssertionError("fitted again")
+
+    monkeypatch.setattr(identification, "_identify_part", refuse)
+    later = context(force_scale=50.0, cache=str(tmp_path))     # another run, trained on other data
+    reused = identify(later, [fitted_part])[0]
+    assert (reused.loss, reused.evaluations, reused.converged) == (fitted.loss, fitted.evaluations, fitted.converged)
+    np.testing.assert_array_equal(forces(later, reused), forces(first, fitted))
+    assert not any(p.requires_grad for p in reused.model.head.parameters())
+
+
+def test_a_relative_cache_folder_is_taken_from_the_project_root(tmp_path, monkeypatch):
+    monkeypatch.setenv("PROJECT_ROOT", str(tmp_path))
+    monkeypatch.chdir("/")
+    identify(context(cache="runs/fits"), [fitted_part])
+    assert len(list((tmp_path / "runs" / "fits").glob("t-*.pt"))) == 1
+
+
+@pytest.mark.parametrize("change", ["trial", "seed", "settings", "target", "head", "dynamics"])
+def test_whatever_decides_a_fit_changes_its_key(change):
+    trials = [Profile(p.time, p.depth, p.force) for p in fitted_part.profiles]
+    settings, seed, target, head, dynamics = dict(SETTINGS), 0, "force", GaussianHead(32, 4), MDS2()
+    before = fit_key("t", trials, target, settings, seed, DT, head, dynamics)
+    if change == "trial":
+        trials[1] = Profile(trials[1].time, trials[1].depth, trials[1].force + 1e-9)
+    elif change == "seed":
+        seed = 1
+    elif change == "settings":
+        settings["ridge"] = 0.2
+    elif change == "target":
+        target = "force_clean"
+    elif change == "head":
+        head = GaussianHead(32, 4, num_local_models=8)
+    else:
+        dynamics = MDS2(time_constant=0.03)
+    assert fit_key("t", trials, target, settings, seed, DT, head, dynamics) != before
+
+
+def test_the_neutral_start_alone_is_shared_across_seeds_and_random_starts_are_not(tmp_path):
+    identify(context(seed=0, cache=str(tmp_path), restarts=1), [fitted_part])
+    identify(context(seed=1, cache=str(tmp_path), restarts=1), [fitted_part])
+    assert len(list(tmp_path.glob("*.pt"))) == 1
+    identify(context(seed=0, cache=str(tmp_path)), [fitted_part])
+    identify(context(seed=1, cache=str(tmp_path)), [fitted_part])
+    assert len(list(tmp_path.glob("*.pt"))) == 3
+
+
+def test_a_damaged_stored_fit_is_fitted_again_and_replaced(tmp_path, caplog):
+    fitted = identify(context(cache=str(tmp_path)), [fitted_part])[0]
+    (stored,) = tmp_path.glob("t-*.pt")
+    stored.write_bytes(b"not a fit")
+    again = identify(context(cache=str(tmp_path)), [fitted_part])[0]
+    assert "unreadable" in caplog.text and again.loss == fitted.loss
+    assert torch.load(stored, weights_only=True)["loss"] == fitted.loss
+    assert not list(tmp_path.glob("*.tmp"))
