@@ -14,7 +14,7 @@ from conftest import ROOT, compose_config
 from pipe.cli import main as pipe_main
 from pipe.data.domain import numbered_split
 from pipe.errors import PipeError
-from pipe.evaluation.curve import curve_markdown, gap_closed, read_curve
+from pipe.evaluation.curve import curve_markdown, gap_closed, read_curve, read_paired, write_curve
 from pipe.evaluation.spread import Spread
 from pipe.synthetic.families import family_parts
 
@@ -48,14 +48,18 @@ def test_the_curve_domain_without_a_family_dataset_is_refused_with_a_hint():
         domain_from_config(cfg.domain)
 
 
-def write_run(folder, train: int, fits: dict[str, tuple[float, float]]) -> None:
-    """A seeds run's results.json as pipeline.write_seeds_results writes it, with FIT(F) per method."""
+def write_run(folder, train: int, fits: dict[str, tuple[float, float]],
+              per_seed: dict[str, list[float]] | None = None) -> None:
+    """A seeds run's results.json as pipeline.write_seeds_results writes it, with FIT(F) per method (and,
+    where given, each seed's FIT(F) per method)."""
     folder.mkdir(parents=True)
     methods = {m: {"fit_F": {"mean": mean, "std": std, "n": 3}, "rms": {"mean": 1.0, "std": 0.1, "n": 3}}
                for m, (mean, std) in fits.items()}
+    seeds = {str(k): {m: {"fit_F": values[k], "rms": 1.0} for m, values in (per_seed or {}).items()}
+             for k in range(3)} if per_seed else {}
     (folder / "results.json").write_text(json.dumps({"domain": f"curve_pins_{train}", "seeds": [0, 1, 2],
                                                      "parts": {"train": train, "val": 10, "test": 20},
-                                                     "methods": methods, "per_seed": {}}))
+                                                     "methods": methods, "per_seed": seeds}))
 
 
 def test_the_curve_table_holds_each_runs_spread_and_the_gap_pipe_closes(tmp_path):
@@ -70,6 +74,23 @@ def test_the_curve_table_holds_each_runs_spread_and_the_gap_pipe_closes(tmp_path
     assert "| nearest | 48.00 ± 5.00 | 65.00 ± 2.00 | better |" in table   # 10 apart, spreads add to 3
     assert "| oracle | 85.00 ± 1.00 | 85.00 ± 1.00 | worse |" in table
     assert "PIPE closes 50% of the gap" in table
+
+
+def test_the_curve_gives_pipe_minus_nearest_seed_by_seed(tmp_path):
+    """Seeds that move PIPE and nearest together tie on their spreads but not seed by seed."""
+    sweep = tmp_path / "pins"
+    write_run(sweep / "train_5", 5, {"pipe": (61.0, 10.0), "nearest": (59.0, 10.0)},
+              per_seed={"pipe": [51.0, 61.0, 71.0], "nearest": [50.0, 59.0, 68.0]})
+    write_run(sweep / "train_10", 10, {"pipe": (60.0, 1.0), "nearest": (60.0, 1.0)})   # no seeds: left out
+    paired = read_paired([sweep])
+    assert paired == {"pins": {5: Spread(2.0, 1.0, 3)}}                    # differences 1, 2 and 3
+    table = curve_markdown(read_curve([sweep]), paired)
+    assert "| nearest | 59.00 ± 10.00 | 60.00 ± 1.00 | tie |" in table
+    assert "| pipe - nearest, seed by seed | +2.00 ± 1.00 | - | - |" in table
+    write_curve([sweep], tmp_path / "out")
+    document = json.loads((tmp_path / "out" / "learning_curve.json").read_text())
+    assert document["pins"]["pipe_minus_nearest"] == {"5": {"mean": 2.0, "std": 1.0, "n": 3}}
+    assert document["pins"]["fit_F"]["pipe"]["10"] == {"mean": 60.0, "std": 1.0, "n": 3}
 
 
 def test_the_curve_refuses_what_is_not_a_sweep_of_seeds_runs(tmp_path):

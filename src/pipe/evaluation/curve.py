@@ -3,12 +3,15 @@
 It reads the runs of a sweep over `domain.train_count` (README, "Learning curve"): each run a `seeds=` run
 whose results.json holds every method's metrics as mean ± std over the seeds. One folder per family (the
 sweep folder of its runs) gives one panel of the figure and one block of the table; `pipe report curve`
-writes learning_curve.json, learning_curve.md and learning_curve.png.
+writes learning_curve.json, learning_curve.md and learning_curve.png. Beside each method's spread the table
+gives PIPE's FIT(F) minus `nearest`'s seed by seed: the two share each seed's trained encoder and head, so
+their difference is free of what the seed does to both.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import matplotlib
@@ -18,22 +21,23 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.ticker import ScalarFormatter  # noqa: E402
 
 from pipe.errors import PipeError  # noqa: E402
-from pipe.evaluation.spread import Spread, verdict  # noqa: E402
+from pipe.evaluation.spread import Spread, spread, verdict  # noqa: E402
 
 Curve = dict[str, dict[str, dict[int, Spread]]]     # family -> method -> training parts -> FIT(F) over seeds
+Paired = dict[str, dict[int, Spread]]               # family -> training parts -> PIPE minus nearest, per seed
 METRIC = "fit_F"
+PAIRED_WITH = "nearest"
 
 
-def read_curve(folders: list[Path], metric: str = METRIC) -> Curve:
-    """The curve of each sweep folder (named by the folder): its runs' results.json, found in the folder's
-    subfolders, by their number of training parts."""
-    curve: Curve = {}
+def _runs(folders: list[Path]) -> Iterator[tuple[str, int, dict, Path]]:
+    """(family, training parts, results.json, its path) of every run in the sweep folders, a family per folder;
+    refuses what is not a sweep of `seeds=` runs, or two runs of one family with as many training parts."""
     for folder in folders:
         documents = sorted(Path(folder).glob("*/results.json"))
         if not documents:
             raise PipeError("holds no run folder with a results.json (the output of a `seeds=` run); give the "
                             "sweep folder of a learning-curve multirun", folder)
-        family = curve.setdefault(Path(folder).name, {})
+        counts: set[int] = set()
         for document in documents:
             try:
                 doc = json.loads(document.read_text())
@@ -42,13 +46,35 @@ def read_curve(folders: list[Path], metric: str = METRIC) -> Curve:
             if not isinstance(doc, dict) or "methods" not in doc or "parts" not in doc:
                 raise PipeError("is not the results.json of a `seeds=` run (mean ± std over seeds)", document)
             count = int(doc["parts"]["train"])
-            for method, metrics in doc["methods"].items():
-                if count in family.get(method, {}):
-                    raise PipeError(f"two runs of the sweep have {count} training parts", document)
-                if metric in metrics:
-                    value = metrics[metric]
-                    family.setdefault(method, {})[count] = Spread(value["mean"], value["std"], value["n"])
+            if count in counts:
+                raise PipeError(f"two runs of the sweep have {count} training parts", document)
+            counts.add(count)
+            yield Path(folder).name, count, doc, document
+
+
+def read_curve(folders: list[Path], metric: str = METRIC) -> Curve:
+    """The curve of each sweep folder (named by the folder): its runs' results.json, found in the folder's
+    subfolders, by their number of training parts."""
+    curve: Curve = {}
+    for family, count, doc, _ in _runs(folders):
+        for method, metrics in doc["methods"].items():
+            if metric in metrics:
+                value = metrics[metric]
+                curve.setdefault(family, {}).setdefault(method, {})[count] = Spread(value["mean"], value["std"],
+                                                                                    value["n"])
     return curve
+
+
+def read_paired(folders: list[Path], against: str = PAIRED_WITH, metric: str = METRIC) -> Paired:
+    """PIPE's metric minus `against`'s in each seed's run, as a spread over the seeds, per family and number
+    of training parts (where at least two seeds have both)."""
+    paired: Paired = {}
+    for family, count, doc, _ in _runs(folders):
+        differences = [run["pipe"][metric] - run[against][metric] for run in doc.get("per_seed", {}).values()
+                       if metric in run.get("pipe", {}) and metric in run.get(against, {})]
+        if len(differences) >= 2:
+            paired.setdefault(family, {})[count] = spread(differences)
+    return paired
 
 
 def gap_closed(points: dict[str, dict[int, Spread]], count: int) -> float | None:
@@ -60,9 +86,10 @@ def gap_closed(points: dict[str, dict[int, Spread]], count: int) -> float | None
     return (pipe - nearest) / (oracle - nearest) if oracle != nearest else None
 
 
-def curve_markdown(curve: Curve) -> str:
+def curve_markdown(curve: Curve, paired: Paired | None = None) -> str:
     """One table per family: each method's FIT(F) mean ± std per number of training parts, PIPE's verdict
-    against it at the largest number, and the share of the nearest-to-oracle gap PIPE closes there."""
+    against it at the largest number, PIPE minus `nearest` seed by seed (`paired`), and the share of the
+    nearest-to-oracle gap PIPE closes at the largest number."""
     lines = []
     for family, points in curve.items():
         counts = sorted({n for values in points.values() for n in values})
@@ -75,7 +102,15 @@ def curve_markdown(curve: Curve) -> str:
                 else verdict(points["pipe"][largest], values[largest], METRIC)
             lines.append(f"| {method} | " + " | ".join(str(values[n]) if n in values else "-" for n in counts)
                          + f" | {judged} |")
+        differences = (paired or {}).get(family, {})
+        if differences:
+            lines.append(f"| pipe - {PAIRED_WITH}, seed by seed | "
+                         + " | ".join(f"{differences[n].mean:+.2f} ± {differences[n].std:.2f}" if n in differences
+                                      else "-" for n in counts) + " | - |")
         closed = gap_closed(points, largest)
+        if differences:
+            lines += ["", f"pipe - {PAIRED_WITH}, seed by seed: PIPE's FIT(F) minus `{PAIRED_WITH}`'s in each seed's "
+                          "run (both predict with that seed's encoder and head), mean ± std over the seeds."]
         if closed is not None:
             lines += ["", f"At {largest} training parts PIPE closes {closed:.0%} of the gap between `nearest` and "
                           "the oracle (of their means)."]
@@ -108,12 +143,16 @@ def plot_curve(curve: Curve, path: Path) -> None:
 
 
 def write_curve(folders: list[Path], out: Path) -> list[Path]:
-    """learning_curve.json, .md and .png in `out` from the sweep folders."""
-    curve = read_curve(folders)
+    """learning_curve.json (per family: each method's FIT(F) and PIPE minus `nearest` seed by seed, by number
+    of training parts), .md and .png in `out` from the sweep folders."""
+    curve, paired = read_curve(folders), read_paired(folders)
     out.mkdir(parents=True, exist_ok=True)
+    by_count = lambda values: {str(n): {"mean": v.mean, "std": v.std, "n": v.n}   # noqa: E731
+                               for n, v in sorted(values.items())}
     (out / "learning_curve.json").write_text(json.dumps(
-        {family: {method: {str(n): {"mean": v.mean, "std": v.std, "n": v.n} for n, v in sorted(values.items())}
-                  for method, values in points.items()} for family, points in curve.items()}, indent=2) + "\n")
-    (out / "learning_curve.md").write_text(curve_markdown(curve))
+        {family: {"fit_F": {method: by_count(values) for method, values in points.items()},
+                  f"pipe_minus_{PAIRED_WITH}": by_count(paired.get(family, {}))}
+         for family, points in curve.items()}, indent=2) + "\n")
+    (out / "learning_curve.md").write_text(curve_markdown(curve, paired))
     plot_curve(curve, out / "learning_curve.png")
     return [out / f"learning_curve.{ext}" for ext in ("json", "md", "png")]
