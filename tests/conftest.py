@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from pipe.model import ltv
 from pipe.synthetic import generate_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -20,6 +21,16 @@ def mlflow_store(tmp_path_factory) -> str:
     uri = f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
     os.environ["MLFLOW_TRACKING_URI"] = uri
     return uri
+
+
+@pytest.fixture
+def compiled_simulator():
+    """The compiled simulator for every batch size: identification runs thousands of small simulations, and
+    parts fitted together or alone then take the same arithmetic."""
+    previous = ltv.get_backend()
+    ltv.set_backend("compiled")
+    yield
+    ltv.set_backend(previous)
 
 
 @pytest.fixture(scope="session")

@@ -16,7 +16,6 @@ from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.evaluation.identification import identify, start_head
 from pipe.evaluation.methods import METHODS
-from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
 from pipe.plugins.encoder.pointnet import PointNetVAE
 from pipe.plugins.head.gaussian import GaussianHead
@@ -43,14 +42,7 @@ def part(name: str, gain: float, trials: int = 3, noise: float = 0.0) -> PartDat
 IDENTIFICATION = {"restarts": 2, "max_evaluations": 1500}
 
 
-@pytest.fixture(autouse=True)
-def compiled_simulator():
-    """The compiled simulator for every batch size: identification runs thousands of small simulations, and
-    parts fitted together or alone then take the same arithmetic."""
-    previous = ltv.get_backend()
-    ltv.set_backend("compiled")
-    yield
-    ltv.set_backend(previous)
+pytestmark = pytest.mark.usefixtures("compiled_simulator")   # conftest.py
 
 
 @pytest.fixture

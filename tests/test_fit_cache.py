@@ -12,7 +12,6 @@ from pipe.evaluation import identification
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.fit_cache import fit_key
 from pipe.evaluation.identification import identify
-from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
 from pipe.plugins.encoder.pointnet import PointNetVAE
 from pipe.plugins.head.gaussian import GaussianHead
@@ -21,12 +20,7 @@ from pipe.plugins.model.mds2 import MDS2
 SETTINGS = {"restarts": 2, "max_evaluations": 60}
 
 
-@pytest.fixture(autouse=True)
-def compiled_simulator():
-    previous = ltv.get_backend()
-    ltv.set_backend("compiled")
-    yield
-    ltv.set_backend(previous)
+pytestmark = pytest.mark.usefixtures("compiled_simulator")   # conftest.py
 
 
 def context(force_scale: float = 10.0, seed: int = 0, **settings) -> EvalContext:
