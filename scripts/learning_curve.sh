@@ -5,20 +5,17 @@
 # The runs share one folder of identified fits (OUT/identification_fits): the oracles of the test parts and
 # gpr's fits of the training parts are computed once, not at every size and seed. It can be stopped and
 # started again: a run whose results.json exists is kept, an unfinished one is started over. FAMILIES
-# chooses the families (default "pins rect"); with JOBS=2 they run side by side, each with one thread (on
-# 2 cores nearly twice as fast as one after the other; logs in OUT/<family>.log). Extra arguments are Hydra
-# overrides for every run.
-#   [JOBS=2] [FAMILIES=pins] bash scripts/learning_curve.sh OUT [overrides...]     e.g. OUT = runs/curve
+# chooses the families (default "pins rect"), e.g. to run them one after the other on separate days or
+# side by side on separate machines. Extra arguments are Hydra overrides for every run.
+#   [FAMILIES=pins] bash scripts/learning_curve.sh OUT [overrides...]       e.g. OUT = runs/curve
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${1:?give an output folder, e.g. runs/curve}
 shift
 mkdir -p "$out"
 fits="$(realpath "$out")/identification_fits"
-
-family_runs() {   # family, overrides...
-    local family=$1 count run
-    shift
+read -ra families <<< "${FAMILIES:-pins rect}"
+for family in "${families[@]}"; do
     for count in 5 10 20 50 100; do
         run="$out/$family/train_$count"
         [ -f "$run/results.json" ] && continue
@@ -27,24 +24,5 @@ family_runs() {   # family, overrides...
             "domain.train_count=$count" 'seeds=[0,1,2]' "hydra.run.dir=$run" trainer.progress_bar=false \
             "evaluation.identification.cache=$fits" "$@"
     done
-}
-
-read -ra families <<< "${FAMILIES:-pins rect}"
-if [ "${JOBS:-1}" -ge 2 ]; then
-    export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1
-    pids=()
-    for family in "${families[@]}"; do
-        family_runs "$family" "$@" > "$out/$family.log" 2>&1 &
-        pids+=($!)
-    done
-    failed=0
-    for i in "${!pids[@]}"; do
-        wait "${pids[$i]}" || { echo "the ${families[$i]} runs failed: see $out/${families[$i]}.log" >&2; failed=1; }
-    done
-    [ $failed = 0 ]
-else
-    for family in "${families[@]}"; do
-        family_runs "$family" "$@"
-    done
-fi
+done
 .venv/bin/pipe report curve "${families[@]/#/$out/}" --out "$out"

@@ -129,3 +129,15 @@ def test_a_smoke_curve_runs_end_to_end_and_its_table_holds_the_runs_results(tmp_
     small, large = (Spread(**run["methods"]["pipe"]["fit_F"]) for run in runs)
     assert f"| pipe | {small} | {large} | - |" in table
     assert (tmp_path / "out" / "learning_curve.png").stat().st_size > 10_000
+
+
+def test_the_figure_leaves_points_far_below_the_others_to_the_table(tmp_path, monkeypatch):
+    """`mean` on a few parts can score -240 %: the panel stops at FLOOR so the methods that matter stay readable."""
+    from pipe.evaluation import curve as curve_module
+
+    figures = []
+    monkeypatch.setattr(curve_module.plt, "close", figures.append)
+    points = {"pipe": {5: Spread(60.0, 1.0, 3)}, "mean": {5: Spread(-240.0, 0.0, 3)}}
+    curve_module.plot_curve({"pins": points, "rect": {"pipe": {5: Spread(40.0, 2.0, 3)}}}, tmp_path / "c.png")
+    low_pins, low_rect = (ax.get_ylim()[0] for ax in figures[0].axes)
+    assert low_pins == curve_module.FLOOR and low_rect > curve_module.FLOOR
