@@ -66,13 +66,13 @@ def read_curve(folders: list[Path], metric: str = METRIC) -> Curve:
     return curve
 
 
-def read_paired(folders: list[Path], against: str = PAIRED_WITH, metric: str = METRIC) -> Paired:
-    """PIPE's metric minus `against`'s in each seed's run, as a spread over the seeds, per family and number
+def read_paired(folders: list[Path], metric: str = METRIC) -> Paired:
+    """PIPE's metric minus PAIRED_WITH's in each seed's run, as a spread over the seeds, per family and number
     of training parts (where at least two seeds have both)."""
     paired: Paired = {}
     for family, count, doc, _ in _runs(folders):
-        differences = [run["pipe"][metric] - run[against][metric] for run in doc.get("per_seed", {}).values()
-                       if metric in run.get("pipe", {}) and metric in run.get(against, {})]
+        differences = [run["pipe"][metric] - run[PAIRED_WITH][metric] for run in doc.get("per_seed", {}).values()
+                       if metric in run.get("pipe", {}) and metric in run.get(PAIRED_WITH, {})]
         if len(differences) >= 2:
             paired.setdefault(family, {})[count] = spread(differences)
     return paired

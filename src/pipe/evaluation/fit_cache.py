@@ -17,6 +17,7 @@ import json
 import logging
 import os
 import tempfile
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -40,12 +41,19 @@ def module_settings(module: nn.Module) -> dict[str, Any]:
             and (isinstance(value, _PLAIN) or (isinstance(value, tuple) and all(isinstance(v, _PLAIN) for v in value)))}
 
 
-def _source_files(*modules: nn.Module) -> list[str]:
-    """The project's source files that define these modules' classes (and their bases) and compute a fit."""
-    names = set(_CODE) | {c.__module__ for m in modules for c in type(m).__mro__
-                          if c.__module__.startswith(("pipe.", "plugins."))}
+@cache
+def _source(names: frozenset[str]) -> bytes:
+    """The contents of these modules' source files, in the order of their paths (read once per process)."""
     specs = (importlib.util.find_spec(name) for name in names)
-    return sorted(spec.origin for spec in specs if spec is not None and spec.origin)
+    return b"".join(Path(path).read_bytes() for path in sorted(spec.origin for spec in specs
+                                                                if spec is not None and spec.origin))
+
+
+def _code(*modules: nn.Module) -> bytes:
+    """The source of the project's code that computes a fit: the identification and simulator modules, and
+    those that define these modules' classes and their bases."""
+    return _source(frozenset(_CODE) | {c.__module__ for m in modules for c in type(m).__mro__
+                                       if c.__module__.startswith("pipe.")})
 
 
 def fit_key(part: str, trials: list[Profile], target: str, settings: dict[str, Any], seed: int | None,
@@ -59,8 +67,7 @@ def fit_key(part: str, trials: list[Profile], target: str, settings: dict[str, A
     for trial in trials:
         for values in (trial.time, trial.depth, trial.force):
             digest.update(np.ascontiguousarray(values, dtype=np.float64).tobytes())
-    for path in _source_files(head, dynamics):
-        digest.update(Path(path).read_bytes())
+    digest.update(_code(head, dynamics))
     return digest.hexdigest()
 
 
