@@ -1,4 +1,4 @@
-"""The `pipe` command line: `pipe data generate|check|pointcloud` and `pipe report curve`."""
+"""The `pipe` command line: `pipe data generate|import|check|pointcloud` and `pipe report curve`."""
 
 from __future__ import annotations
 
@@ -38,6 +38,49 @@ def cmd_generate(args: argparse.Namespace) -> int:
     out = generate_dataset(args.out, seed=args.seed, parts=parts, family=args.family, count=count)
     what = f"{count} parts of the {args.family} family" if args.family else "the synthetic dataset"
     console.print(f"wrote {what} to {out} (seed {args.seed}); check it with: pipe data check {out}")
+    return 0
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from pipe.importing.dataset_import import REPORT_FILE, import_dataset
+    from pipe.importing.insertion import InsertionSettings
+    from pipe.importing.readers import ReaderOptions, TableColumns
+
+    tf = tuple(args.tf.split(",")) if args.tf else None
+    if tf is not None and (len(tf) != 2 or not all(tf)):
+        return fail(f"--tf takes two frame ids, PARENT,CHILD (e.g. base,tool0), got {args.tf!r}")
+    if args.format in ("rtde", "ur_rtde") and (args.columns or args.force_frame != "base"):
+        return fail(f"--columns and --force-frame describe other formats; the {args.format} format has fixed "
+                    "columns in the base frame")
+    options = ReaderOptions(columns=TableColumns.parse(args.columns) if args.columns else TableColumns(),
+                            time_unit=args.time_unit, position_unit=args.position_unit, delimiter=args.delimiter,
+                            force_in_tool_frame=args.force_frame == "tool", wrench_topic=args.wrench_topic,
+                            pose_topic=args.pose_topic, tf_frames=tf, wrench_data=args.wrench_data,
+                            wrench_time=args.wrench_time, pose_data=args.pose_data, pose_time=args.pose_time,
+                            quaternion=args.quaternion)
+    settings = InsertionSettings(axis=args.axis, direction=args.direction, frame=args.frame,
+                                 force_sign=args.force_sign, contact_threshold_n=args.contact_threshold,
+                                 contact_min_s=args.contact_min_duration, approach_s=args.approach,
+                                 retreat_mm=args.retreat, bias_s=args.bias_window)
+    result = import_dataset(args.out, args.format, args.recordings, args.meshes, args.mapping, args.mesh_units,
+                            args.name, options, settings)
+    if result.problems:
+        for problem in result.problems:
+            say(str(problem), "error")
+        print(f"{len(result.problems)} problem(s); nothing was written to {args.out}", file=sys.stderr)
+        return 1
+    table = Table("part", "trial", "kept [s]", "contact at [s]", "retreat cut", "depth max [mm]", "force max [N]",
+                  title=f"imported into {result.out}")
+    for r in result.reports:
+        table.add_row(r["part"], r["trial"], f"{r['kept_from_s']:.2f} to {r['kept_to_s']:.2f}",
+                      f"{r['contact_at_s']:.3f}", "yes" if r["retreat_cut"] else "no", f"{r['depth_max_mm']:.2f}",
+                      f"{r['force_max_n']:.2f}")
+    console.print(table)
+    for r in result.reports:
+        for warning in r["warnings"]:
+            say(f"{r['file']}: {warning}", "warning")
+    console.print(f"wrote {len(result.reports)} trials of {len(result.trials)} parts (what was cut and why: "
+                  f"{result.out / REPORT_FILE}); check it with: pipe data check {result.out}")
     return 0
 
 
@@ -88,6 +131,65 @@ def cmd_curve(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_import_parser(verbs: argparse._SubParsersAction) -> None:
+    from pipe.importing.insertion import FRAMES, InsertionSettings
+    from pipe.importing.readers import READERS, TIME_UNITS, ReaderOptions
+
+    default = InsertionSettings()
+    formats = "; ".join(f"{r.name}: {r.summary}" for r in READERS.values())
+    imp = verbs.add_parser("import", help="convert robot recordings and CAD meshes into a dataset folder",
+                           description="Cut each recording to one insertion (README, 'Bringing your own "
+                                       f"recordings') and write the dataset. Formats: {formats}.")
+    imp.add_argument("out", type=Path, help="output dataset folder (an earlier dataset there is replaced)")
+    imp.add_argument("--format", required=True, choices=list(READERS))
+    imp.add_argument("--recordings", type=Path, required=True,
+                     help="folder with a subfolder of recordings per part (or give --mapping)")
+    imp.add_argument("--meshes", type=Path, required=True, help="folder with one <part>.stl|obj|ply|off per part")
+    imp.add_argument("--mapping", type=Path, help="CSV (recording,part) or YAML (recording: part) file")
+    imp.add_argument("--mesh-units", default="mm", help="length unit of the mesh files (default mm)")
+    imp.add_argument("--name", help="dataset name (default: the folder's name)")
+    options = ReaderOptions()
+    table = imp.add_argument_group("generic tables (--format table)")
+    table.add_argument("--columns", help="column mapping, e.g. time=t,pz=tcp_z,fz=force_z (p position, f force, "
+                                         "r rotation vector; axes x, y, z)")
+    table.add_argument("--time-unit", default=options.time_unit, choices=list(TIME_UNITS))
+    table.add_argument("--position-unit", default=options.position_unit,
+                       help="length unit of the positions of tables and HDF5 files (default m)")
+    table.add_argument("--delimiter", default=options.delimiter, help="CSV delimiter (default ','; ' ' for any "
+                                                                      "whitespace)")
+    table.add_argument("--force-frame", default="base", choices=FRAMES,
+                       help="frame of the force (tables, bags, HDF5): base (the robot's, default) or tool (a wrist "
+                            "sensor)")
+    streams = imp.add_argument_group("ROS bags (--format rosbag) and HDF5 files (--format hdf5)")
+    streams.add_argument("--wrench-topic", default=options.wrench_topic, help="WrenchStamped topic")
+    streams.add_argument("--pose-topic", default=options.pose_topic, help="PoseStamped topic of the TCP")
+    streams.add_argument("--tf", metavar="PARENT,CHILD", help="take the TCP pose from /tf between these frames")
+    for key in ("wrench_data", "wrench_time", "pose_data", "pose_time"):
+        streams.add_argument(f"--{key.replace('_', '-')}", default=getattr(options, key),
+                             help=f"HDF5 dataset name (default {getattr(options, key)})")
+    streams.add_argument("--quaternion", default=options.quaternion, choices=("xyzw", "wxyz"),
+                         help="HDF5 quaternion order (default xyzw)")
+    cut = imp.add_argument_group("cutting each recording to one insertion")
+    cut.add_argument("--axis", default=default.axis, choices=list("xyz"), help="insertion axis (default z)")
+    cut.add_argument("--direction", type=int, choices=(1, -1),
+                     help="way the tool moves along the axis while inserting (default -1 in the base frame, "
+                          "+1 in the tool frame)")
+    cut.add_argument("--frame", default=default.frame, choices=FRAMES, help="frame of the axis (default base)")
+    cut.add_argument("--force-sign", type=int, default=default.force_sign, choices=(1, -1),
+                     help="1: the force acts on the tool (UR's actual_TCP_force, default); -1: the tool's force")
+    cut.add_argument("--contact-threshold", type=float, default=default.contact_threshold_n,
+                     help=f"N the resisting force must exceed (default {default.contact_threshold_n:g})")
+    cut.add_argument("--contact-min-duration", type=float, default=default.contact_min_s,
+                     help=f"s it must stay above it (default {default.contact_min_s:g})")
+    cut.add_argument("--approach", type=float, default=default.approach_s,
+                     help=f"s kept before contact (default {default.approach_s:g})")
+    cut.add_argument("--retreat", type=float, default=default.retreat_mm,
+                     help=f"mm back from the deepest point where the retreat is cut (default {default.retreat_mm:g})")
+    cut.add_argument("--bias-window", type=float, default=default.bias_s,
+                     help=f"s at the start, in free space, whose mean force is the bias (default {default.bias_s:g})")
+    imp.set_defaults(run=cmd_import)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pipe", description="PIPE: contact models of assembly tasks from CAD.")
     kinds = parser.add_subparsers(dest="kind", required=True)
@@ -102,6 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
     chosen.add_argument("--family", help="parts of a parametric family instead: dsub, rect or pins (docs/synthetic.md)")
     gen.add_argument("--count", type=int, help="how many parts of the family (default 100)")
     gen.set_defaults(run=cmd_generate)
+
+    add_import_parser(verbs)
 
     check = verbs.add_parser("check", help="validate a dataset folder and summarise each part")
     check.add_argument("dir", type=Path)

@@ -13,7 +13,7 @@ from pipe.errors import DatasetError
 
 SPEC_FILE = "dataset.yaml"
 DEFAULT_COLUMNS = {"time": "t", "position": "p_z", "force": "F_z"}
-_KNOWN_KEYS = {"name", "description", "units", "columns", "sign", "sample_rate_hz", "parts"}
+_KNOWN_KEYS = {"name", "description", "units", "columns", "sign", "sample_rate_hz", "parts", "source"}
 
 
 def length_to_mm(unit: str, path: str | Path | None = None) -> float:
@@ -54,6 +54,7 @@ class DatasetSpec:
     force_sign: int = 1
     sample_rate_hz: float | None = None
     parts: dict[str, dict[str, Any]] = field(default_factory=dict)
+    source: dict[str, Any] = field(default_factory=dict)   # where the data came from (`pipe data import`)
 
     @property
     def mesh_scale(self) -> float:
@@ -76,6 +77,8 @@ class DatasetSpec:
             doc["sample_rate_hz"] = self.sample_rate_hz
         if self.parts:
             doc["parts"] = self.parts
+        if self.source:
+            doc["source"] = self.source
         return yaml.safe_dump(doc, sort_keys=False)
 
 
@@ -116,6 +119,9 @@ def load_spec(root: str | Path) -> DatasetSpec:
     parts = doc.get("parts") or {}
     if not isinstance(parts, dict) or not all(isinstance(v, dict) for v in parts.values()):
         raise DatasetError("'parts' must map part names to metadata mappings", path)
+    source = doc.get("source") or {}
+    if not isinstance(source, dict):
+        raise DatasetError("'source' must be a mapping (what the data came from)", path)
     rate = doc.get("sample_rate_hz")
     if rate is not None and not (isinstance(rate, (int, float)) and rate > 0):
         raise DatasetError(f"'sample_rate_hz' must be a positive number, got {rate!r}", path)
@@ -130,6 +136,7 @@ def load_spec(root: str | Path) -> DatasetSpec:
         force_sign=_sign(sign.get("force", 1), "force", path),
         sample_rate_hz=float(rate) if rate is not None else None,
         parts=parts,
+        source=source,
     )
     for unit in (spec.mesh_units, spec.position_units):
         length_to_mm(unit, path)

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from pipe.data.folders import check_replaceable, write_dataset_folder
 from pipe.data.spec import Columns, DatasetSpec
 from pipe.errors import PipeError
 from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
@@ -159,21 +158,7 @@ def generate_dataset(out: str | Path, seed: int = 0, parts: list[str] | None = N
             raise PipeError(f"unknown part(s) {unknown}; the synthetic parts are: {', '.join(CATALOGUE)}")
         chosen = {n: CATALOGUE[n] for n in names}
         command = f"pipe data generate --seed {seed}"
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "dataset.yaml").is_file())):
-        raise PipeError("exists and is not a generated dataset; choose an empty or new folder", out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    check_replaceable(out, "a generated dataset")
     trials = simulate_parts(chosen, seed)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        write_dataset(staging, chosen, command, trials)
-        if out.exists():
-            old = out.with_name(f".{out.name}.old")
-            shutil.rmtree(old, ignore_errors=True)
-            out.rename(old)
-            staging.rename(out)
-            shutil.rmtree(old)
-        else:
-            staging.rename(out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    write_dataset_folder(out, lambda staging: write_dataset(staging, chosen, command, trials))
     return out
