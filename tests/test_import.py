@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import json
 import re
+import shlex
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import trimesh
+from conftest import ROOT
 from scipy.spatial.transform import Rotation
 
 from pipe.cli import main
@@ -41,12 +45,14 @@ def true_insertion(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return depth, np.where(t > 2.0, -2.0, force)
 
 
-def ur_recording(rate: float = 500.0, seed: int = 0, tilt_deg: float = 0.0) -> tuple[pd.DataFrame, np.ndarray]:
+def ur_recording(rate: float = 500.0, seed: int = 0, tilt_deg: float = 0.0,
+                 force_scale: float = 1.0) -> tuple[pd.DataFrame, np.ndarray]:
     """A UR recording of a downward insertion (tool z along -base z, tilted about x by `tilt_deg`): TCP pose
     in m and rad, the force acting on the tool in N in the base frame, with bias and noise; and its time."""
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, 2.5, 1.0 / rate)
     depth, force = true_insertion(t)
+    force = force * force_scale
     tool = Rotation.from_euler("x", 180.0 + tilt_deg, degrees=True)         # tool z points down (tilted)
     axis = tool.apply([0.0, 0.0, 1.0])                                        # insertion direction, base frame
     position = np.array([0.4, -0.1, 0.3]) + np.outer(depth, axis) / 1000.0 + rng.normal(0, 1e-6, (len(t), 3))
@@ -372,3 +378,31 @@ def test_hdf5_round_trip_in_the_tool_frame(tmp_path: Path) -> None:
     (tmp_path / "bad.h5").write_text("not hdf5")
     with pytest.raises(DatasetError, match="not a readable HDF5 file"):
         read_hdf5(tmp_path / "bad.h5", ReaderOptions())
+
+
+@pytest.mark.slow
+def test_the_readme_recordings_example_runs(tmp_path: Path) -> None:
+    """'Bringing your own recordings' as the README states it: import RTDE logs, check, train (at smoke
+    settings, one seed) on recordings of four pegs whose stiffness grows with their diameter."""
+    block = next(b for b in (ROOT / "README.md").read_text().split("```") if b.startswith("bash\n# raw/<part>"))
+    for diameter in (4, 6, 8, 10):
+        part = tmp_path / "raw" / f"peg{diameter}"
+        part.mkdir(parents=True)
+        for k in range(2):
+            frame, _ = ur_recording(seed=diameter + k, force_scale=diameter / 8)
+            frame.to_csv(part / f"ins{k}.csv", sep=" ", index=False)
+        (tmp_path / "cad").mkdir(exist_ok=True)
+        trimesh.creation.cylinder(radius=diameter / 2, height=20.0).export(tmp_path / "cad" / f"peg{diameter}.stl")
+    programs = {"pipe": str(Path(sys.executable).parent / "pipe"), "python": sys.executable}
+    for line in filter(None, (line.strip() for line in block.removeprefix("bash\n").splitlines())):
+        if line.startswith("#"):
+            continue
+        args = [a.replace("data/mylab", str(tmp_path / "mylab")) for a in shlex.split(line)]
+        args = [str(tmp_path / a) if a in ("raw", "cad") else a for a in args if a != "seeds=[0,1,2]"]
+        if args[0] == "python":
+            args += ["experiment=smoke", f"hydra.run.dir={tmp_path / 'run'}"]
+        result = subprocess.run([programs[args[0]], *args[1:]], cwd=ROOT, capture_output=True, text=True,
+                                timeout=600)
+        assert result.returncode == 0, (line, result.stderr[-3000:])
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert set(metrics["per_part"]) == {"peg10"}
