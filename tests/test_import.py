@@ -406,3 +406,14 @@ def test_the_readme_recordings_example_runs(tmp_path: Path) -> None:
         assert result.returncode == 0, (line, result.stderr[-3000:])
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert set(metrics["per_part"]) == {"peg10"}
+
+
+def test_mesh_axes_go_to_dataset_yaml(tmp_path: Path) -> None:
+    recordings, meshes = write_rtde_set(tmp_path, {"a": 1, "screw": 1})
+    result = import_dataset(tmp_path / "out", "rtde", recordings, meshes, mesh_axes="principal,screw=x")
+    assert not result.problems
+    assert yaml_of(tmp_path / "out")["parts"] == {"a": {"axis": "principal"}, "screw": {"axis": "x"}}
+    with pytest.raises(DatasetError, match="names part 'nut', which has no recordings"):
+        import_dataset(tmp_path / "out", "rtde", recordings, meshes, mesh_axes="nut=x")
+    with pytest.raises(DatasetError, match=r"mesh axis \['up'\] is not one of"):
+        import_dataset(tmp_path / "out", "rtde", recordings, meshes, mesh_axes="up")

@@ -63,7 +63,7 @@ def cmd_import(args: argparse.Namespace) -> int:
                                  contact_min_s=args.contact_min_duration, approach_s=args.approach,
                                  retreat_mm=args.retreat, bias_s=args.bias_window)
     result = import_dataset(args.out, args.format, args.recordings, args.meshes, args.mapping, args.mesh_units,
-                            args.name, options, settings)
+                            args.name, options, settings, args.mesh_axis)
     if result.problems:
         for problem in result.problems:
             say(str(problem), "error")
@@ -76,9 +76,8 @@ def cmd_import(args: argparse.Namespace) -> int:
                       f"{r['contact_at_s']:.3f}", "yes" if r["retreat_cut"] else "no", f"{r['depth_max_mm']:.2f}",
                       f"{r['force_max_n']:.2f}")
     console.print(table)
-    for r in result.reports:
-        for warning in r["warnings"]:
-            say(f"{r['file']}: {warning}", "warning")
+    for warning in result.warnings + [f"{r['file']}: {w}" for r in result.reports for w in r["warnings"]]:
+        say(warning, "warning")
     console.print(f"wrote {len(result.reports)} trials of {len(result.trials)} parts (what was cut and why: "
                   f"{result.out / REPORT_FILE}); check it with: pipe data check {result.out}")
     return 0
@@ -111,7 +110,7 @@ def cmd_pointcloud(args: argparse.Namespace) -> int:
 
     from pipe.data.preprocess import cloud_from_mesh
 
-    cloud = cloud_from_mesh(args.mesh, args.units, args.points, seed=args.seed)
+    cloud = cloud_from_mesh(args.mesh, args.units, args.points, seed=args.seed, axis=args.axis)
     extents = (cloud.points.max(axis=0) - cloud.points.min(axis=0)).astype(float)
     assumed = " (assumed from its size)" if args.units == "auto" else ""
     console.print(f"{args.mesh}: read in {cloud.mesh.units}{assumed}; {len(cloud.points)} points, "
@@ -144,9 +143,14 @@ def add_import_parser(verbs: argparse._SubParsersAction) -> None:
     imp.add_argument("--format", required=True, choices=list(READERS))
     imp.add_argument("--recordings", type=Path, required=True,
                      help="folder with a subfolder of recordings per part (or give --mapping)")
-    imp.add_argument("--meshes", type=Path, required=True, help="folder with one <part>.stl|obj|ply|off per part")
+    imp.add_argument("--meshes", type=Path, required=True,
+                     help="folder with one <part>.<ext> per part (STL, OBJ, PLY, OFF, GLB/glTF, 3MF, STEP, IGES)")
     imp.add_argument("--mapping", type=Path, help="CSV (recording,part) or YAML (recording: part) file")
-    imp.add_argument("--mesh-units", default="mm", help="length unit of the mesh files (default mm)")
+    imp.add_argument("--mesh-units", default="mm", help="length unit of STL, OBJ, PLY and OFF files (default mm; "
+                                                        "the other formats carry their own)")
+    imp.add_argument("--mesh-axis", metavar="AXIS[,PART=AXIS...]",
+                     help="the meshes' insertion axis, turned onto z: x, y, z (default), -x, -y, -z or principal (the "
+                          "long axis); for all parts and/or per part, e.g. z,screw=x")
     imp.add_argument("--name", help="dataset name (default: the folder's name)")
     options = ReaderOptions()
     table = imp.add_argument_group("generic tables (--format table)")
@@ -191,6 +195,8 @@ def add_import_parser(verbs: argparse._SubParsersAction) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from pipe.data.spec import INSERTION_AXES
+
     parser = argparse.ArgumentParser(prog="pipe", description="PIPE: contact models of assembly tasks from CAD.")
     kinds = parser.add_subparsers(dest="kind", required=True)
     data = kinds.add_parser("data", help="datasets: generate the synthetic one, check any one")
@@ -216,6 +222,8 @@ def build_parser() -> argparse.ArgumentParser:
     cloud.add_argument("mesh", type=Path)
     cloud.add_argument("--points", type=int, default=1024)
     cloud.add_argument("--units", default="auto", help="length unit of the mesh file, or 'auto' (default)")
+    cloud.add_argument("--axis", default="z", choices=INSERTION_AXES,
+                       help="the mesh's insertion axis, turned onto z (default z; principal: its long axis)")
     cloud.add_argument("--seed", type=int, default=0)
     cloud.add_argument("--out", type=Path, help="write the points (n x 3, mm) as .npy")
     cloud.set_defaults(run=cmd_pointcloud)

@@ -117,7 +117,7 @@ def load_trajectory(path: Path, columns: DictConfig, rate: float) -> tuple[np.nd
 
 def sample_mesh(cfg: DictConfig, card: ModelCard) -> tuple[PointCloud, list[str]]:
     """The mesh's point cloud as in training, and notes on the unit it was read in and its size."""
-    cloud = cloud_from_mesh(cfg.mesh, cfg.units, card.points, seed=card.cloud_seed)
+    cloud = cloud_from_mesh(cfg.mesh, cfg.units, card.points, seed=card.cloud_seed, axis=str(cfg.axis))
     units = cloud.mesh.units
     notes = [f"mesh read in {units}" + (" (assumed from its size)" if cfg.units == "auto" else "")]
     return cloud, notes + check_size(cloud.mesh.extent_mm, card, cfg.units, units, Path(cfg.mesh))

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from pipe.data.dataset import find_mesh, load_trial, part_dirs, trial_paths
-from pipe.data.mesh import load_mesh
+from pipe.data.mesh import load_mesh, size_warning
 from pipe.data.spec import load_spec
 from pipe.errors import DatasetError
 
@@ -44,7 +44,10 @@ def _check_part(part_dir: Path, spec, report: CheckReport) -> None:
     problems_before = len(report.problems)
     mesh = None
     try:
-        mesh = load_mesh(find_mesh(part_dir), spec.mesh_units)
+        mesh_path = find_mesh(part_dir)
+        mesh = load_mesh(mesh_path, spec.mesh_units)
+        if (warning := size_warning(mesh)) is not None:
+            report.warnings.append(DatasetError(warning, mesh_path))
     except DatasetError as err:
         report.problems.append(err)
     trials = []

@@ -1,18 +1,45 @@
-"""Loading CAD meshes (STL, OBJ, PLY, OFF) into millimetres, with clear errors for broken files."""
+"""Loading CAD meshes into millimetres, with clear errors for broken files.
+
+Formats: STL, OBJ, PLY, OFF, GLB/glTF and 3MF through trimesh; STEP and IGES (the B-rep formats real CAD is
+exchanged in) through the optional extra `cad` (cascadio, an OpenCascade binding), which meshes them into
+glTF. Units: a format that carries its own (STEP, IGES, glTF in metres, 3MF) is read in it; the others
+(STL, OBJ, PLY, OFF) in the unit the dataset declares.
+"""
 
 from __future__ import annotations
 
+import io
 import logging
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from pipe.data.spec import length_to_mm
+from pipe.data.spec import INSERTION_AXES, length_to_mm
 from pipe.errors import DatasetError
 
-MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off")
+BREP_TYPES = {".step": "step", ".stp": "step", ".iges": "iges", ".igs": "iges"}
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf", ".3mf", *BREP_TYPES)
+CAD_EXTRA = "pip install 'pipe-sysid[cad]'"
+UNITS = {"meters": "m", "millimeters": "mm", "millimeter": "mm", "meter": "m", "inches": "in", "inch": "in",
+         "centimeters": "cm", "centimeter": "cm", "micron": "um", "microns": "um", "feet": "ft", "foot": "ft"}
 log = logging.getLogger(__name__)
+
+
+def _read(path: Path) -> trimesh.Trimesh | trimesh.Scene:
+    """The file as trimesh reads it; STEP and IGES meshed by OpenCascade first (into glTF, in metres)."""
+    brep = BREP_TYPES.get(path.suffix.lower())
+    if brep is None:
+        return trimesh.load(path, force="mesh", process=True)
+    try:
+        import cascadio
+    except ImportError:
+        raise DatasetError(f"reading {brep.upper()} needs the optional extra 'cad' (cascadio, an OpenCascade "
+                           f"binding): {CAD_EXTRA}", path) from None
+    glb = bytes(cascadio.load(path.read_bytes(), file_type=brep))
+    if not glb:
+        raise DatasetError(f"OpenCascade could not read this {brep.upper()} file", path)
+    return trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh", process=True)
 
 
 def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
@@ -20,8 +47,8 @@ def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
 
     Several bodies are kept as one mesh; vertices split only by normals or texture coordinates (common
     in OBJ exports) are merged so that closed surfaces are recognised as watertight. `units` is the
-    file's length unit, or "auto" to guess from the size (see `guess_units`); the unit used is kept in
-    `mesh.metadata["file_units"]`.
+    file's length unit, or "auto" to guess from the size (see `guess_units`), for formats that do not
+    carry their own; the unit used is kept in `mesh.metadata["file_units"]`.
     """
     path = Path(path)
     if not path.is_file():
@@ -31,7 +58,9 @@ def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     if path.stat().st_size == 0:
         raise DatasetError("mesh file is empty", path)
     try:
-        loaded = trimesh.load(path, force="mesh", process=True)
+        loaded = _read(path)
+    except DatasetError:
+        raise
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise DatasetError(f"not a readable {path.suffix} mesh ({type(exc).__name__}: {exc})", path) from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
@@ -43,12 +72,43 @@ def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
         raise DatasetError("mesh has non-finite vertex coordinates", path)
     if not mesh.area > 0:
         raise DatasetError("mesh has zero surface area (all faces degenerate)", path)
-    if units == "auto":
+    carried = UNITS.get(str(loaded.units).lower()) if loaded.units else None
+    if carried is not None:
+        units = carried
+    elif units == "auto":
         units = guess_units(mesh)
         log.info("%s: assumed the mesh is in %s (largest extent %.4g in file units)", path, units, mesh.extents.max())
     mesh.metadata["file_units"] = units
     mesh.apply_scale(length_to_mm(units, path))
     return mesh
+
+
+def size_warning(mesh: trimesh.Trimesh) -> str | None:
+    """A warning when a mesh read in mm is smaller than 1 mm across: most likely a file in metres."""
+    extent = float(mesh.extents.max())
+    if mesh.metadata.get("file_units") == "mm" and extent < 1.0:
+        return (f"the part is only {extent:.3g} mm across when read in mm: if the file is in metres, declare "
+                "'units: {mesh: m}' in dataset.yaml (or --mesh-units m when importing)")
+    return None
+
+
+def orient(mesh: trimesh.Trimesh, axis: str, path: str | Path | None = None) -> trimesh.Trimesh:
+    """The mesh turned so that its insertion axis is +z: `axis` names the file's axis the part is inserted
+    along (x, y, z, -x, -y, -z), or "principal" for its axis of least inertia (a pin's or a plug's long
+    axis; its sign as the file has it, the positive side of its largest component)."""
+    if axis not in INSERTION_AXES:
+        raise DatasetError(f"insertion axis {axis!r} is not one of {', '.join(INSERTION_AXES)}", path)
+    if axis == "z":
+        return mesh
+    if axis == "principal":
+        source = np.asarray(mesh.principal_inertia_vectors[0], dtype=float)
+        source = source * np.sign(source[np.abs(source).argmax()])
+    else:
+        source = np.zeros(3)
+        source["xyz".index(axis[-1])] = -1.0 if axis.startswith("-") else 1.0
+    turned = mesh.copy()
+    turned.apply_transform(trimesh.geometry.align_vectors(source, [0.0, 0.0, 1.0]))
+    return turned
 
 
 def guess_units(mesh: trimesh.Trimesh) -> str:

@@ -46,7 +46,7 @@ def prepare_domain(root: str | Path, data_cfg: Mapping[str, Any], domain_cfg: Ma
         for name in getattr(domain, split):
             part = dataset.parts[name]
             cloud = cloud_from_mesh(part.mesh_path, spec.mesh_units, int(data_cfg["points"]),
-                                    seed=int(data_cfg["cloud_seed"]))
+                                    seed=int(data_cfg["cloud_seed"]), axis=part.metadata.get("axis", "z"))
             profiles = [preprocess_trial(t, float(data_cfg["rate_hz"]), int(data_cfg["steady_samples"]))
                         for t in part.trials]
             splits[split].append(PartData(name, cloud, profiles, [t.static for t in part.trials]))

@@ -16,7 +16,7 @@ import open3d as o3d
 import trimesh
 
 from pipe.data.dataset import Trial
-from pipe.data.mesh import load_mesh
+from pipe.data.mesh import load_mesh, orient
 
 
 @dataclass(frozen=True)
@@ -81,10 +81,12 @@ def sample_point_cloud(mesh: trimesh.Trimesh, n: int = 1024, seed: int = 0, init
     return PointCloud(points, centre, method)
 
 
-def cloud_from_mesh(path: str | Path, units: str = "mm", points: int = 1024, seed: int = 0) -> PointCloud:
+def cloud_from_mesh(path: str | Path, units: str = "mm", points: int = 1024, seed: int = 0,
+                    axis: str = "z") -> PointCloud:
     """The whole mesh -> point cloud chain of training, `pipe data pointcloud` and prediction: load the mesh
-    file in mm (`units` its length unit, or "auto"), sample `points` points, centre them."""
-    mesh = load_mesh(path, units)
+    file in mm (`units` its length unit, or "auto"), turn its insertion `axis` onto z (`orient`), sample
+    `points` points, centre them."""
+    mesh = orient(load_mesh(path, units), axis, path)
     cloud = sample_point_cloud(mesh, points, seed=seed)
     info = MeshInfo(mesh.metadata["file_units"], float(mesh.extents.max()), bool(mesh.is_watertight))
     return replace(cloud, mesh=info)

@@ -13,6 +13,7 @@ from pipe.errors import DatasetError
 
 SPEC_FILE = "dataset.yaml"
 DEFAULT_COLUMNS = {"time": "t", "position": "p_z", "force": "F_z"}
+INSERTION_AXES = ("z", "x", "y", "-x", "-y", "-z", "principal")   # parts.<part>.axis: the mesh's insertion axis
 _KNOWN_KEYS = {"name", "description", "units", "columns", "sign", "sample_rate_hz", "parts", "source"}
 
 
@@ -119,6 +120,9 @@ def load_spec(root: str | Path) -> DatasetSpec:
     parts = doc.get("parts") or {}
     if not isinstance(parts, dict) or not all(isinstance(v, dict) for v in parts.values()):
         raise DatasetError("'parts' must map part names to metadata mappings", path)
+    for name, meta in parts.items():
+        if meta.get("axis", "z") not in INSERTION_AXES:
+            raise DatasetError(f"parts.{name}.axis is {meta['axis']!r}; use one of {', '.join(INSERTION_AXES)}", path)
     source = doc.get("source") or {}
     if not isinstance(source, dict):
         raise DatasetError("'source' must be a mapping (what the data came from)", path)

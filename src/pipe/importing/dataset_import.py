@@ -2,9 +2,10 @@
 
 Which recording belongs to which part: a subfolder per part (`RECORDINGS/<part>/<files>`), or a mapping
 file (CSV with columns `recording,part`, or YAML `recording: part`, recordings relative to RECORDINGS).
-Each part's mesh is `MESHES/<part>.<stl|obj|ply|off>`. Every recording and mesh is checked first; the
-dataset is written only when all of them pass, all at once (`pipe.data.folders`), with `dataset.yaml`
-recording the source and settings and `import_report.json` what was cut from each trial and why.
+Each part's mesh is `MESHES/<part>.<ext>` in any format `pipe.data.mesh` reads (a glTF file is stored as
+GLB, which holds its buffers). Every recording and mesh is checked first; the dataset is written only
+when all of them pass, all at once (`pipe.data.folders`), with `dataset.yaml` recording the source, the
+settings and each part's insertion axis, and `import_report.json` what was cut from each trial and why.
 """
 
 from __future__ import annotations
@@ -17,12 +18,13 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
+import trimesh
 import yaml
 
 from pipe import __version__
 from pipe.data.folders import check_replaceable, write_dataset_folder
-from pipe.data.mesh import MESH_SUFFIXES, load_mesh
-from pipe.data.spec import SPEC_FILE, DatasetSpec
+from pipe.data.mesh import MESH_SUFFIXES, load_mesh, size_warning
+from pipe.data.spec import INSERTION_AXES, SPEC_FILE, DatasetSpec
 from pipe.errors import DatasetError, PipeError
 from pipe.importing.insertion import Insertion, InsertionSettings, extract_insertion
 from pipe.importing.readers import Reader, ReaderOptions, get_reader
@@ -35,6 +37,7 @@ class ImportResult:
     out: Path | None                                   # None when nothing was written
     trials: dict[str, dict[str, Insertion]] = field(default_factory=dict)   # part -> recording stem -> trial
     problems: list[PipeError] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)      # about the meshes; the trials' are in their reports
 
     @property
     def reports(self) -> list[dict]:
@@ -101,20 +104,41 @@ def find_meshes(meshes: Path, parts: list[str]) -> dict[str, Path]:
     return {p: files[p] for p in parts}
 
 
+def parse_axes(text: str | None, parts: list[str]) -> dict[str, str]:
+    """Each part's mesh insertion axis from `x` (all parts) and/or `part=axis` items, e.g. `z,screw=x`."""
+    default, axes = "z", {}
+    for item in filter(None, (s.strip() for s in (text or "").split(","))):
+        part, sep, axis = item.rpartition("=")
+        if not sep:
+            default = axis
+        elif part not in parts:
+            raise DatasetError(f"--mesh-axis names part {part!r}, which has no recordings; parts: {parts}")
+        else:
+            axes[part] = axis
+    chosen = {p: axes.get(p, default) for p in parts}
+    bad = sorted({a for a in chosen.values() if a not in INSERTION_AXES})
+    if bad:
+        raise DatasetError(f"mesh axis {bad} is not one of {', '.join(INSERTION_AXES)}")
+    return chosen
+
+
 def import_dataset(out: Path, fmt: str, recordings: Path, meshes: Path, mapping: Path | None = None,
                    mesh_units: str = "mm", name: str | None = None, options: ReaderOptions | None = None,
-                   settings: InsertionSettings | None = None) -> ImportResult:
-    """Convert and check everything, then write the dataset to `out` only if nothing failed."""
+                   settings: InsertionSettings | None = None, mesh_axes: str | None = None) -> ImportResult:
+    """Convert and check everything, then write the dataset to `out` only if nothing failed. `mesh_axes`:
+    the meshes' insertion axes (`parse_axes`), kept per part in dataset.yaml."""
     reader = get_reader(fmt)
     options = options or ReaderOptions()
     settings = settings or InsertionSettings()
     check_replaceable(out, "a dataset")
     by_part = find_recordings(recordings, reader, mapping)
     mesh_files = find_meshes(meshes, list(by_part))
+    axes = parse_axes(mesh_axes, list(by_part))
     result = ImportResult(out=None)
     for part, files in by_part.items():
         try:
-            load_mesh(mesh_files[part], mesh_units)
+            if (warning := size_warning(load_mesh(mesh_files[part], mesh_units))) is not None:
+                result.warnings.append(f"{mesh_files[part]}: {warning}")
         except PipeError as err:
             result.problems.append(err)
         stems = [f.stem for f in files]
@@ -132,7 +156,8 @@ def import_dataset(out: Path, fmt: str, recordings: Path, meshes: Path, mapping:
               "reader": asdict(options)}
     rates = [1.0 / float(np.median(np.diff(t.time))) for trials in result.trials.values() for t in trials.values()]
     spec = DatasetSpec(root=out, name=name or out.name, mesh_units=mesh_units, position_units="mm",
-                       sample_rate_hz=round(float(np.median(rates)), 3), parts={p: {} for p in result.trials},
+                       sample_rate_hz=round(float(np.median(rates)), 3),
+                       parts={p: {"axis": axes[p]} if axes[p] != "z" else {} for p in result.trials},
                        source=source)
 
     def write(folder: Path) -> None:
@@ -141,7 +166,11 @@ def import_dataset(out: Path, fmt: str, recordings: Path, meshes: Path, mapping:
         for part, trials in result.trials.items():
             part_dir = folder / "parts" / part
             (part_dir / "trials").mkdir(parents=True)
-            shutil.copyfile(mesh_files[part], part_dir / f"mesh{mesh_files[part].suffix.lower()}")
+            mesh_file = mesh_files[part]
+            if mesh_file.suffix.lower() == ".gltf":
+                trimesh.load(mesh_file).export(part_dir / "mesh.glb")
+            else:
+                shutil.copyfile(mesh_file, part_dir / f"mesh{mesh_file.suffix.lower()}")
             for stem, trial in trials.items():
                 np.savetxt(part_dir / "trials" / f"{stem}.csv", np.column_stack([trial.time, trial.depth, trial.force]),
                            fmt=("%.6f", "%.6f", "%.6f"), delimiter=",", header="t,p_z,F_z", comments="")
