@@ -25,15 +25,19 @@ def _train(cfg: DictConfig) -> None:
     from rich.table import Table
 
     from pipe.cli import console, fail
-    from pipe.errors import PipeError
+    from pipe.errors import PipeError, debugging
     from pipe.pipeline import results_rows, run_domain, run_seeds, spread_rows
+    from pipe.tracking import stop_on_signals
 
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # device banners and tips, twice
+    stop_on_signals()
     title = (f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
              f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
     try:
         result = run_seeds(cfg) if cfg.seeds is not None else run_domain(cfg)
     except PipeError as err:
+        if debugging():
+            raise
         sys.exit(fail(str(err)))
     if cfg.seeds is not None:
         table = Table("method", "FIT(F) [%]", "FIT(dF/dt) [%]", "rms [N]", "rms_rel", "PIPE vs it (FIT(F))",
@@ -59,12 +63,14 @@ def _predict(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     from pipe.cli import console, fail
-    from pipe.errors import PipeError
+    from pipe.errors import PipeError, debugging
     from pipe.predict import predict, write_prediction
 
     try:
         prediction = predict(cfg)
     except PipeError as err:
+        if debugging():
+            raise
         sys.exit(fail(str(err)))
     out = Path(HydraConfig.get().runtime.output_dir)
     write_prediction(prediction, out, Path(cfg.mesh), str(cfg.run))

@@ -10,7 +10,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from pipe.errors import PipeError
+from pipe.errors import PipeError, debugging
 
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
 
@@ -243,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.run(args)
     except PipeError as err:
+        if debugging():
+            raise
         return fail(str(err))
 
 

@@ -30,6 +30,7 @@ from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import MethodResult, evaluate_methods, reconstruction_metrics
 from pipe.evaluation.report import spread_markdown, write_report
 from pipe.evaluation.spread import Spread, check_seeds, summarise, verdict
+from pipe.files import write_text_atomically
 from pipe.model import ltv
 from pipe.model.card import BandCard, ModelCard
 from pipe.model.interfaces import DynamicModel, ParameterHead
@@ -50,6 +51,7 @@ from pipe.training.fit import fit_head, fit_vae
 
 log = logging.getLogger(__name__)
 METRICS = ("fit_F", "fit_dF", "rms", "rms_rel")
+RUN_ID_FILE = "mlflow_run_id"   # in a run's folder: its MLflow run, which resume= continues
 
 
 @dataclass
@@ -165,19 +167,22 @@ def run_domain(cfg: DictConfig) -> RunResult:
     L.seed_everything(cfg.seed, workers=True)
     data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
     encoder, head, dynamics = build_components(cfg)
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    write_text_atomically(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     names = {kind: cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "head", "model")}
     tags = {"domain": data.domain.name, **names, "git_commit": git_commit(Path(cfg.paths.root)),
             "dataset": str(data.dataset_dir), "dataset_version": dataset_version(data.dataset_dir)}
     tracking = cfg.mlflow.enabled
     run_name = f"{data.domain.name} {names['encoder']} {names['model']}"
-    with tracked_run(cfg, run_name, tags) if tracking else nullcontext() as active:
+    id_file = run_dir / RUN_ID_FILE
+    resume_id = id_file.read_text().strip() if resume and tracking and id_file.is_file() else None
+    with tracked_run(cfg, run_name, tags, resume_id) if tracking else nullcontext() as active:
+        if tracking:
+            write_text_atomically(id_file, active.info.run_id + "\n")   # resume= continues this run
         loggers = [StageLogger(run_id=active.info.run_id, tracking_uri=mlflow.get_tracking_uri())] if tracking else []
         run = train_and_evaluate(cfg, data, PIPEModel(encoder, head, dynamics, *data_scales(data.splits["train"])),
                                  run_dir, resume, loggers)
         if tracking:
             log_outputs(run, cfg.mlflow.registered_model or None)
-            (run_dir / "mlflow_run_id").write_text(active.info.run_id + "\n")
             run.mlflow_run_id = active.info.run_id
     return run
 
@@ -221,21 +226,21 @@ def write_seeds_results(result: SeedsResult) -> None:
     summary, counts, reconstruction = result.summary, result.runs[0].counts, result.reconstruction
     stat = {part: {name: {k: getattr(v, part) for k, v in metrics.items()} for name, metrics in summary.items()}
             for part in ("mean", "std")}
-    (result.run_dir / "metrics.json").write_text(json.dumps(
+    write_text_atomically(result.run_dir / "metrics.json", json.dumps(
         {"seeds": result.seeds, "test": stat["mean"]["pipe"], "test_std": stat["std"]["pipe"],
          "baselines": {n: m for n, m in stat["mean"].items() if n != "pipe"},
          "baselines_std": {n: m for n, m in stat["std"].items() if n != "pipe"},
          "reconstruction": {k: v.mean for k, v in reconstruction.items()},
          "reconstruction_std": {k: v.std for k, v in reconstruction.items()},
          "mean_seconds": result.seconds}, indent=2) + "\n")
-    (result.run_dir / "results.json").write_text(json.dumps(
+    write_text_atomically(result.run_dir / "results.json", json.dumps(
         {"domain": result.domain_name, "parts": counts, "seeds": result.seeds,
          "methods": {n: {k: {"mean": v.mean, "std": v.std, "n": v.n} for k, v in m.items()}
                      for n, m in summary.items()},
          "per_seed": {str(seed): {n: r.domain for n, r in run.results.items()}
                       for seed, run in zip(result.seeds, result.runs)}}, indent=2) + "\n")
-    (result.run_dir / "results.md").write_text(spread_markdown(result.domain_name, counts, result.seeds, summary,
-                                                               reconstruction))
+    write_text_atomically(result.run_dir / "results.md", spread_markdown(result.domain_name, counts, result.seeds,
+                                                                          summary, reconstruction))
 
 
 def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, run_dir: Path, resume: bool,
@@ -259,7 +264,7 @@ def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, 
     run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, latents, index,
                     test, dt, results, reconstruction, model_card(cfg, data, model.dynamics, band.offset), seconds,
                     logvars=logvars)
-    (run_dir / "metrics.json").write_text(json.dumps(
+    write_text_atomically(run_dir / "metrics.json", json.dumps(
         {"test": run.pipe.domain, "baselines": {n: r.domain for n, r in results.items() if n != "pipe"},
          "per_part": run.pipe.per_part, "reconstruction": reconstruction, "seconds": seconds}, indent=2) + "\n")
     write_report(run, run_dir / "report")

@@ -24,6 +24,7 @@ from omegaconf import DictConfig  # noqa: E402
 from pipe.data.dataset import Trial, read_numeric_csv  # noqa: E402
 from pipe.data.preprocess import PointCloud, cloud_from_mesh, resample  # noqa: E402
 from pipe.errors import PipeError  # noqa: E402
+from pipe.files import atomic_path, write_text_atomically  # noqa: E402
 from pipe.model.card import BandCard, ModelCard  # noqa: E402
 from pipe.model.uncertainty import force_band, theta_band  # noqa: E402
 from pipe.store import tracking_uri  # noqa: E402
@@ -165,10 +166,12 @@ def write_prediction(pred: Prediction, out: Path, mesh: Path, run: str) -> list[
     out.mkdir(parents=True, exist_ok=True)
     names = pred.parameter_names
     header = ",".join(["p_z", *names, *(f"{n}_lower" for n in names), *(f"{n}_upper" for n in names)])
-    np.savetxt(out / "theta.csv", np.column_stack([pred.depth_grid, pred.theta, *pred.theta_band]), delimiter=",",
-               header=header, comments="", fmt="%.6g")
-    np.savetxt(out / "force.csv", np.column_stack([pred.time, pred.depth, pred.force, *pred.force_band]),
-               delimiter=",", header="t,p_z,F_z,F_z_lower,F_z_upper", comments="", fmt="%.6g")
+    with atomic_path(out / "theta.csv") as temporary:
+        np.savetxt(temporary, np.column_stack([pred.depth_grid, pred.theta, *pred.theta_band]), delimiter=",",
+                   header=header, comments="", fmt="%.6g")
+    with atomic_path(out / "force.csv") as temporary:
+        np.savetxt(temporary, np.column_stack([pred.time, pred.depth, pred.force, *pred.force_band]),
+                   delimiter=",", header="t,p_z,F_z,F_z_lower,F_z_upper", comments="", fmt="%.6g")
     doc = {"mesh": str(mesh), "model": model_uri(run), "notes": pred.notes, "depth_mm": pred.depth_grid.tolist(),
            "theta": {n: pred.theta[:, j].tolist() for j, n in enumerate(pred.parameter_names)},
            "local_models": {n: {k: v[j] for k, v in pred.local_models.items()}
@@ -179,7 +182,7 @@ def write_prediction(pred: Prediction, out: Path, mesh: Path, run: str) -> list[
                     "about": "force.csv F_z_lower/F_z_upper: the quantiles of the force over latent codes drawn from "
                              "the encoder's distribution, widened by the offset calibrated on the validation parts; "
                              "theta.csv <name>_lower/_upper: the latent quantiles alone"}}
-    (out / "theta.json").write_text(json.dumps(doc, indent=2) + "\n")
+    write_text_atomically(out / "theta.json", json.dumps(doc, indent=2) + "\n")
     fig, axes = plt.subplots(1, 1 + len(pred.parameter_names), figsize=(4 * (1 + len(pred.parameter_names)), 3.4))
     axes[0].fill_between(pred.time, *pred.force_band, color="k", alpha=0.15, lw=0,
                          label=f"{pred.band.level:.0%} band (calibrated)")
@@ -195,6 +198,7 @@ def write_prediction(pred: Prediction, out: Path, mesh: Path, run: str) -> list[
         ax.set_title(name)
         ax.set_xlabel("p_z [mm]")
     fig.tight_layout()
-    fig.savefig(out / "prediction.png", dpi=100)
+    with atomic_path(out / "prediction.png") as temporary:
+        fig.savefig(temporary, dpi=100)
     plt.close(fig)
     return sorted(out.iterdir())

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import signal
 import subprocess
 import time
 from collections.abc import Iterator
@@ -78,26 +79,44 @@ class StageLogger(MLFlowLogger):
         pass
 
 
+_signalled: list[int] = []   # the signals that stopped this process, for the runs' final status
+
+
+def _stop(signum: int, frame: object) -> None:
+    _signalled.append(signum)
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def stop_on_signals() -> None:
+    """Ctrl-C and SIGTERM (`kill`, a scheduler) stop a training by KeyboardInterrupt, and its MLflow runs end
+    KILLED, even where Lightning turns the interrupt into an exit of its own."""
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _stop)
+
+
 @contextmanager
-def tracked_run(cfg: DictConfig, run_name: str, tags: dict[str, str]) -> Iterator[mlflow.ActiveRun]:
+def tracked_run(cfg: DictConfig, run_name: str, tags: dict[str, str],
+                resume_id: str | None = None) -> Iterator[mlflow.ActiveRun]:
     """An MLflow run for one domain training: params and tags logged; FAILED if anything raises, KILLED
-    on Ctrl-C, FINISHED otherwise (never left RUNNING). Inside a multirun it is a child of the sweep's run."""
+    on Ctrl-C or SIGTERM, FINISHED otherwise (never left RUNNING). Inside a multirun it is a child of the
+    sweep's run. `resume_id`: continue that run (a resumed training), whose params are already logged."""
     experiment_id = use_experiment(cfg)
     parent = os.environ.get(PARENT_RUN_ENV)
-    run = mlflow.start_run(experiment_id=experiment_id, run_name=run_name, parent_run_id=parent, tags=tags)
+    if resume_id is not None:
+        run = mlflow.start_run(run_id=resume_id, tags=tags)
+    else:
+        run = mlflow.start_run(experiment_id=experiment_id, run_name=run_name, parent_run_id=parent, tags=tags)
     try:
-        params = flatten(OmegaConf.to_container(cfg, resolve=True))
-        items = list(params.items())
-        for start in range(0, len(items), 100):   # MLflow takes at most 100 params per call
-            mlflow.log_params(dict(items[start:start + 100]))
+        if resume_id is None:
+            items = list(flatten(OmegaConf.to_container(cfg, resolve=True)).items())
+            for start in range(0, len(items), 100):   # MLflow takes at most 100 params per call
+                mlflow.log_params(dict(items[start:start + 100]))
         yield run
-    except KeyboardInterrupt:
-        mlflow.end_run("KILLED")
-        raise
-    except BaseException:
-        mlflow.end_run("FAILED")
+    except BaseException as exc:
+        killed = isinstance(exc, KeyboardInterrupt) or bool(_signalled)
+        mlflow.end_run("KILLED" if killed else "FAILED")
         if parent:
-            MlflowClient().set_terminated(parent, "FAILED")
+            MlflowClient().set_terminated(parent, "KILLED" if killed else "FAILED")
         raise
     mlflow.end_run("FINISHED")
 

@@ -12,6 +12,7 @@ from pipe.data.dataset import find_mesh, load_trial, part_dirs, trial_paths
 from pipe.data.mesh import load_mesh, size_warning
 from pipe.data.spec import load_spec
 from pipe.errors import DatasetError
+from pipe.files import write_text_atomically
 
 RATE_TOLERANCE = 0.1   # a trial's median sample rate may differ this much from the declared one
 
@@ -141,4 +142,4 @@ def write_summary_json(report: CheckReport, path: str | Path) -> None:
     }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=2) + "\n")
+    write_text_atomically(path, json.dumps(doc, indent=2) + "\n")

@@ -22,6 +22,7 @@ from matplotlib.ticker import ScalarFormatter  # noqa: E402
 
 from pipe.errors import PipeError  # noqa: E402
 from pipe.evaluation.spread import Spread, spread, verdict  # noqa: E402
+from pipe.files import atomic_path, write_text_atomically
 
 Curve = dict[str, dict[str, dict[int, Spread]]]     # family -> method -> training parts -> FIT(F) over seeds
 Paired = dict[str, dict[int, Spread]]               # family -> training parts -> PIPE minus nearest, per seed
@@ -143,7 +144,8 @@ def plot_curve(curve: Curve, path: Path) -> None:
         ax.grid(alpha=0.3)
     axes[0, -1].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as temporary:
+        fig.savefig(temporary, dpi=110)
     plt.close(fig)
 
 
@@ -154,10 +156,10 @@ def write_curve(folders: list[Path], out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     by_count = lambda values: {str(n): {"mean": v.mean, "std": v.std, "n": v.n}   # noqa: E731
                                for n, v in sorted(values.items())}
-    (out / "learning_curve.json").write_text(json.dumps(
+    write_text_atomically(out / "learning_curve.json", json.dumps(
         {family: {"fit_F": {method: by_count(values) for method, values in points.items()},
                   f"pipe_minus_{PAIRED_WITH}": by_count(paired.get(family, {}))}
          for family, points in curve.items()}, indent=2) + "\n")
-    (out / "learning_curve.md").write_text(curve_markdown(curve, paired))
+    write_text_atomically(out / "learning_curve.md", curve_markdown(curve, paired))
     plot_curve(curve, out / "learning_curve.png")
     return [out / f"learning_curve.{ext}" for ext in ("json", "md", "png")]

@@ -15,6 +15,7 @@ import torch  # noqa: E402
 
 from pipe.evaluation.evaluate import MethodResult  # noqa: E402
 from pipe.evaluation.spread import Spread, verdict  # noqa: E402
+from pipe.files import atomic_path, write_text_atomically
 from pipe.model.uncertainty import BandSettings, theta_band  # noqa: E402
 
 COLUMNS = [("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("nrmse_fit_F", "NRMSE fit(F) [%]"),
@@ -123,7 +124,8 @@ def plot_forces(parts, results: dict[str, MethodResult], dt: float, path: Path) 
         ax.set_ylabel("F_z [N]")
     axes[0, -1].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as temporary:
+        fig.savefig(temporary, dpi=110)
     plt.close(fig)
 
 
@@ -154,7 +156,8 @@ def plot_theta(model, parts, latents: torch.Tensor, index: dict[str, int], path:
             ax.set_title(f"{part.name}: {names[j]}", fontsize=9)
             ax.set_xlabel("p_z [mm]")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    with atomic_path(path) as temporary:
+        fig.savefig(temporary, dpi=100)
     plt.close(fig)
 
 
@@ -172,7 +175,8 @@ def plot_clouds(encoder, parts, path: Path) -> None:
             ax.set_title(f"{part.name}: {title}", fontsize=9)
             ax.set_box_aspect(np.ptp(part.cloud.points, axis=0) + 1e-6)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    with atomic_path(path) as temporary:
+        fig.savefig(temporary, dpi=100)
     plt.close(fig)
 
 
@@ -205,7 +209,8 @@ def plot_losses(run_dir: Path, path: Path) -> None:
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as temporary:
+        fig.savefig(temporary, dpi=110)
     plt.close(fig)
 
 
@@ -215,7 +220,7 @@ def write_report(run, out: Path) -> list[Path]:
     doc = results_document(run.domain_name, run.counts, run.results, run.reconstruction, run.seconds)
     files = {"results.json": json.dumps(doc, indent=2) + "\n", "results.md": results_markdown(doc)}
     for name, text in files.items():
-        (out / name).write_text(text)
+        write_text_atomically(out / name, text)
     plot_forces(run.test, run.results, run.dt, out / "forces.png")
     plot_theta(run.model, run.test, run.latents, run.index, out / "theta.png", run.logvars, run.card.band.settings)
     plot_clouds(run.model.encoder, run.test, out / "point_clouds.png")

@@ -39,7 +39,7 @@ def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val:
             resume: bool, loggers: list[Logger]) -> float:
     """Stage 1 (`cfg.stages.vae`): the encoder learns to reconstruct the training clouds."""
     stage = cfg.stages.vae
-    trainer = make_trainer(cfg.trainer, run_dir, "vae", stage.epochs, bool(val), loggers)
+    trainer = make_trainer(cfg.trainer, run_dir, "vae", stage.epochs, bool(val), loggers, resume)
     module = VAEStage(encoder, lr=stage.lr, kl_weight=stage.kl_weight, feature_dtype=stage.feature_dtype)
     return fit_stage(trainer, module,
                      cloud_loader(train, stage.batch_size, True, cfg.seed),
@@ -51,7 +51,7 @@ def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: di
     """Stage 2 (`cfg.stages.head`): the encoder frozen, the head learns the training trials' force through
     the dynamic model; `latents` holds the parts' codes at the rows `index` gives."""
     stage = cfg.stages.head
-    trainer = make_trainer(cfg.trainer, run_dir, "head", stage.epochs, bool(val), loggers)
+    trainer = make_trainer(cfg.trainer, run_dir, "head", stage.epochs, bool(val), loggers, resume)
     return fit_stage(trainer, HeadStage(model, latents, lr=stage.lr),
                      trial_loader(train, index, stage.batch_size, True, cfg.seed),
                      trial_loader(val, index, stage.batch_size, False, cfg.seed) if val else None,

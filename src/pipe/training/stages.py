@@ -15,6 +15,15 @@ from pipe.model.vae import PointCloudVAE
 FEATURE_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
 
+def check_finite(values: torch.Tensor, what: str, module: L.LightningModule, stage: str, setting: str) -> None:
+    """Stop a training whose outputs or loss became NaN or infinite, with a message instead of a crash
+    further on or a model trained on garbage."""
+    if not torch.isfinite(values).all():
+        raise PipeError(f"{stage}: the {what} became NaN or infinite at epoch {module.current_epoch}, step "
+                        f"{module.global_step}; the weights diverged: lower the learning rate ({setting}) or "
+                        "check the data (pipe data check)")
+
+
 class VAEStage(L.LightningModule):
     """Stage 1: the VAE reconstructs point clouds; loss = Chamfer (paper) + kl_weight * KL. `feature_dtype`
     the encoder's feature network trains in (`PointCloudVAE.train_feature_dtype`)."""
@@ -29,9 +38,11 @@ class VAEStage(L.LightningModule):
 
     def _step(self, clouds: torch.Tensor, split: str) -> torch.Tensor:
         out = self.encoder(clouds)
+        check_finite(out.recon, f"{split} reconstruction", self, "stage 1 (VAE)", "stages.vae.lr")
         rec = chamfer(out.recon, clouds).mean()
         kl = kl_divergence(out.mu, out.logvar).mean()
         loss = rec + self.kl_weight * kl
+        check_finite(loss, f"{split} loss", self, "stage 1 (VAE)", "stages.vae.lr")
         size = len(clouds)
         self.log_dict({f"vae/{split}_loss": loss, f"vae/{split}_chamfer": rec, f"vae/{split}_kl": kl},
                       batch_size=size, on_epoch=True, on_step=False, prog_bar=split == "val")
@@ -64,6 +75,7 @@ class HeadStage(L.LightningModule):
 
     def _step(self, batch: TrialBatch, split: str) -> torch.Tensor:
         loss = self.model.loss(self.latents[batch.part], batch)
+        check_finite(loss, f"{split} loss", self, "stage 2 (head)", "stages.head.lr")
         self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False,
                  prog_bar=split == "val")
         return loss

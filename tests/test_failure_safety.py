@@ -1,0 +1,97 @@
+"""Failure safety: a diverging training stops with a message and a FAILED run; a training killed mid-way
+leaves its MLflow run KILLED and continues with resume= into the same run and the same loss log; outputs
+are written whole or not at all."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import ROOT, TINY_DOMAIN
+from mlflow.tracking import MlflowClient
+
+from pipe.files import atomic_path, write_text_atomically
+
+
+def train(*args: str) -> list[str]:
+    return [sys.executable, str(ROOT / "train.py"), "experiment=smoke", *TINY_DOMAIN, *args]
+
+
+def loss_rows(run: Path, stage: str) -> list[dict]:
+    with (run / "logs" / stage / "metrics.csv").open(newline="") as handle:
+        return [row for row in csv.DictReader(handle) if row.get(f"{stage}/train_loss")]
+
+
+@pytest.mark.slow
+def test_a_diverging_training_stops_with_a_message_and_a_failed_run(tiny_data, tmp_path):
+    """Adam with a learning rate of 1e30 throws the weights to ~1e30 in one step: the next loss is not finite."""
+    result = subprocess.run(train(f"data.dir={tiny_data}", f"hydra.run.dir={tmp_path}", "stages.vae.lr=1e30",
+                                  "stages.vae.epochs=5"), capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert result.returncode != 0
+    assert "stage 1 (VAE): the" in result.stderr and "became NaN or infinite at epoch" in result.stderr
+    assert "lower the learning rate (stages.vae.lr)" in result.stderr and "Traceback" not in result.stderr
+    run = MlflowClient().get_run((tmp_path / "mlflow_run_id").read_text().strip())
+    assert run.info.status == "FAILED"
+
+
+@pytest.mark.slow
+def test_a_killed_training_resumes_into_the_same_run_and_loss_log(tiny_data, tmp_path):
+    """SIGTERM in the middle of stage 1 (after its third epoch's checkpoint), then resume=: one MLflow run, KILLED
+    and then FINISHED, and one loss log holding the epochs from before and after the kill."""
+    run_dir = tmp_path / "run"
+    args = [f"data.dir={tiny_data}", f"hydra.run.dir={run_dir}", "stages.vae.epochs=60", "trainer.checkpoint_every=1"]
+    process = subprocess.Popen(train(*args), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    last = run_dir / "checkpoints" / "vae" / "last.ckpt"
+    deadline = time.monotonic() + 300
+    while not (last.is_file() and len(loss_rows(run_dir, "vae")) >= 3) and time.monotonic() < deadline:
+        assert process.poll() is None, process.stderr.read()[-3000:]
+        time.sleep(0.2)
+    os.kill(process.pid, signal.SIGTERM)
+    assert process.wait(timeout=120) != 0
+    before = loss_rows(run_dir, "vae")
+    assert len(before) < 60                                     # killed before stage 1 had finished
+    run_id = (run_dir / "mlflow_run_id").read_text().strip()
+    assert MlflowClient().get_run(run_id).info.status == "KILLED"
+    assert not (run_dir / "metrics.json").exists()              # nothing looks finished
+
+    result = subprocess.run(train(*args[:1], "stages.vae.epochs=60", "trainer.checkpoint_every=1",
+                                  f"resume={run_dir}"), capture_output=True, text=True, timeout=900, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert (run_dir / "mlflow_run_id").read_text().strip() == run_id
+    run = MlflowClient().get_run(run_id)
+    assert run.info.status == "FINISHED" and "test/pipe/fit_F" in run.data.metrics
+    after = loss_rows(run_dir, "vae")
+    epochs = [int(row["epoch"]) for row in after]
+    assert after[:len(before)] == before and max(epochs) == 59 and set(range(60)) <= set(epochs)
+    history = MlflowClient().get_metric_history(run_id, "vae/train_loss")
+    assert {m.step for m in history} >= {int(row["step"]) for row in after}
+
+
+def test_atomic_writes_leave_the_old_file_when_writing_fails(tmp_path):
+    target = tmp_path / "metrics.json"
+    write_text_atomically(target, "old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as temporary:
+            temporary.write_text("half")
+            raise RuntimeError("crash while writing")
+    assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["metrics.json"]
+    write_text_atomically(target, "new")
+    assert target.read_text() == "new"
+
+
+def test_pipe_debug_shows_the_full_traceback(tmp_path, monkeypatch, capsys):
+    from pipe.cli import main
+    from pipe.errors import DatasetError
+
+    assert main(["data", "check", str(tmp_path / "none")]) != 0
+    err = capsys.readouterr().err
+    assert "dataset folder does not exist" in err and "Traceback" not in err
+    monkeypatch.setenv("PIPE_DEBUG", "1")
+    with pytest.raises(DatasetError, match="dataset folder does not exist"):
+        main(["data", "check", str(tmp_path / "none")])
