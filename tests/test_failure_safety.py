@@ -89,9 +89,10 @@ def test_pipe_debug_shows_the_full_traceback(tmp_path, monkeypatch, capsys):
     from pipe.cli import main
     from pipe.errors import DatasetError
 
-    assert main(["data", "check", str(tmp_path / "none")]) != 0
-    err = capsys.readouterr().err
-    assert "dataset folder does not exist" in err and "Traceback" not in err
+    args = ["data", "pointcloud", str(tmp_path / "none.stl")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.replace("\n", " ")
+    assert "none.stl: mesh file does not exist" in err and "Traceback" not in err
     monkeypatch.setenv("PIPE_DEBUG", "1")
-    with pytest.raises(DatasetError, match="dataset folder does not exist"):
-        main(["data", "check", str(tmp_path / "none")])
+    with pytest.raises(DatasetError, match="mesh file does not exist"):
+        main(args)
