@@ -1,0 +1,127 @@
+"""Issue 9, "a PIPE that wins": stage-2 variants on finished runs' stage-1 encoders.
+
+For each run folder (a seed of `train.py`, e.g. runs/conn/seed_0 from `dvc repro`) the run's config and
+its best stage-1 weights are loaded, and for each variant the head is trained again from the run's own
+initial weights, then PIPE and `nearest` are scored (FIT(F)) on the validation parts, which choose, and on
+the test parts, which report. `default` reproduces the run's own PIPE result to the digit. Variants:
+  default      the paper's stage 2
+  wd=W         AdamW with weight decay W
+  std          the head sees codes standardised by the training parts' mean and spread
+  noise=S      training codes jittered by S x the training parts' spread per latent dimension
+  sample=S     training codes drawn from the encoder's posterior, its standard deviation times S
+Results: docs/experiments.md. Usage (one thread, as the results were measured):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/stage2_variants.py OUT.jsonl runs/conn/seed_0 ... \
+      --variants default,noise=0.1
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+from omegaconf import OmegaConf, open_dict
+
+from pipe.data.batches import stack_clouds
+from pipe.data.prepared import data_scales, prepare_domain
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import evaluate_methods
+from pipe.model import ltv
+from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_components, ensure_dataset
+from pipe.training import fit as fit_module
+from pipe.training.stages import HeadStage, check_finite
+
+
+class Standardised(torch.nn.Module):
+    """The head applied to standardised codes, head((z - m) / s)."""
+
+    def __init__(self, head, mean, std):
+        super().__init__()
+        self.inner = head
+        self.register_buffer("m", mean)
+        self.register_buffer("s", std)
+        self.latent_dim, self.num_parameters = head.latent_dim, head.num_parameters
+
+    def forward(self, z, depth_max):
+        return self.inner((z - self.m) / self.s, depth_max)
+
+
+def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.Tensor) -> type[HeadStage]:
+    """HeadStage with the variant's training codes and optimiser."""
+
+    class Stage(HeadStage):
+        def _step(self, batch, split):
+            z = self.latents[batch.part]
+            if split == "train" and kind == "noise":
+                z = z + torch.randn_like(z) * spread * value
+            if split == "train" and kind == "sample":
+                z = z + torch.randn_like(z) * torch.exp(0.5 * logvars[batch.part]) * value
+            loss = self.model.loss(z, batch)
+            check_finite(loss, f"{split} loss", self, "stage 2 (head)", "stages.head.lr")
+            self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False)
+            return loss
+
+        def configure_optimizers(self):
+            if kind == "wd":
+                return torch.optim.AdamW(self.model.head.parameters(), lr=self.lr, weight_decay=value)
+            return super().configure_optimizers()
+
+    return Stage
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", help="JSON lines file the rows are appended to")
+    ap.add_argument("runs", nargs="+", help="finished seed folders of train.py")
+    ap.add_argument("--variants", default="default", help="comma-separated, e.g. default,wd=0.01,noise=0.3")
+    args = ap.parse_args()
+    for run in args.runs:
+        run_dir = Path(run)
+        cfg = OmegaConf.load(run_dir / "config.yaml")
+        with open_dict(cfg):
+            cfg.trainer.progress_bar = False
+        ltv.set_backend(cfg.simulator)
+        L.seed_everything(cfg.seed, workers=True)
+        data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
+        encoder, head, dynamics = build_components(cfg)
+        state = torch.load(run_dir / "checkpoints/vae/best.ckpt", map_location="cpu", weights_only=True)["state_dict"]
+        encoder.load_state_dict({k.removeprefix("encoder."): v for k, v in state.items()})
+        head0 = copy.deepcopy(head.state_dict())
+        train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
+        model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+        parts = train + val + test
+        index = {p.name: i for i, p in enumerate(parts)}
+        latents, logvars = model.latent_distribution(stack_clouds(parts))
+        tr = latents[: len(train)]
+        spread = tr.std(0)
+        for spec in args.variants.split(","):
+            kind, _, val_s = spec.partition("=")
+            value = float(val_s) if val_s else 0.0
+            head.load_state_dict(head0)
+            m = model.with_head(Standardised(head, tr.mean(0), spread.clamp_min(1e-6))) if kind == "std" else model
+            m.encoder.requires_grad_(False)
+            fit_module.HeadStage = variant_stage(kind, value, spread, logvars)
+            start = time.perf_counter()
+            with tempfile.TemporaryDirectory() as tmp:
+                fit_module.fit_head(cfg, m, latents, index, train, val, Path(tmp), False, [])
+            secs = time.perf_counter() - start
+            row = {"run": str(run_dir), "variant": spec, "seconds": secs}
+            for split, parts_ in (("val", val), ("test", test)):
+                ctx = EvalContext(m, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed,
+                                  dict(cfg.evaluation), val=[], logvars=None)
+                res = evaluate_methods(ctx, parts_, ["pipe", "nearest"])
+                row[split] = {n: r.domain["fit_F"] for n, r in res.items()}
+            print(json.dumps(row), flush=True)
+            with open(args.out, "a") as f:
+                f.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    main()

@@ -1,0 +1,42 @@
+"""The markdown tables of docs/experiments.md from the scripts' JSON lines: per domain and variant, FIT(F)
+of PIPE on the validation parts (what chooses) and of PIPE and `nearest` on the test parts, and PIPE minus
+`nearest` seed by seed, each as mean ± standard deviation over the seeds (run folders).
+
+usage: python experiments/summarise.py RESULTS.jsonl [...]
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+
+def spread(values: list[float]) -> str:
+    return f"{statistics.mean(values):.2f} ± {statistics.stdev(values) if len(values) > 1 else 0.0:.2f}"
+
+
+def domain_of(run: str) -> str:
+    """runs/conn/seed_0 -> conn; runs/curve/pins/train_20/seed_0 -> pins/train_20."""
+    parts = Path(run).parts
+    return "/".join(parts[parts.index("curve") + 1:-1]) if "curve" in parts else parts[-2]
+
+
+def main(paths: list[str]) -> None:
+    rows = [json.loads(line) for path in paths for line in Path(path).read_text().splitlines() if line.strip()]
+    table: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for row in rows:
+        table[domain_of(row["run"])][row["variant"]].append(row)
+    for domain, variants in table.items():
+        print(f"\n{domain}\n\n| variant | seeds | val: PIPE | test: PIPE | test: nearest | test: PIPE - nearest |")
+        print("| --- | --- | --- | --- | --- | --- |")
+        for variant, runs in variants.items():
+            print(f"| {variant} | {len(runs)} | {spread([r['val']['pipe'] for r in runs])} | "
+                  f"{spread([r['test']['pipe'] for r in runs])} | {spread([r['test']['nearest'] for r in runs])} | "
+                  f"{spread([r['test']['pipe'] - r['test']['nearest'] for r in runs])} |")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,92 @@
+"""Issue 9, "a PIPE that wins": stage 1 on the domain's training clouds plus geometry without recordings.
+
+For each run folder (a seed of `train.py`) the VAE is trained again, with that seed, on the domain's
+training clouds and every mesh of a pool folder (here generated family parts, never the domain's test
+parts), for `--epochs` epochs; then the paper's stage 2, and PIPE and `nearest` scored (FIT(F)) on the
+validation parts, which choose, and the test parts, which report. The pool of the results in
+docs/experiments.md: `python experiments/vae_pretraining.py --write-pool POOL` (40 parts of each family,
+seed 7). Usage (one thread, as the results were measured):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/vae_pretraining.py OUT.jsonl runs/conn/seed_0 \
+      --pool POOL --epochs 100
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import lightning as L
+from omegaconf import OmegaConf, open_dict
+
+from pipe.data.batches import stack_clouds
+from pipe.data.prepared import PartData, data_scales, prepare_domain
+from pipe.data.preprocess import cloud_from_mesh
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import evaluate_methods
+from pipe.model import ltv
+from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_components, ensure_dataset
+from pipe.synthetic.families import family_parts
+from pipe.synthetic.meshes import part_mesh
+from pipe.training.fit import fit_head, fit_vae
+
+
+def write_pool(folder: Path, count: int = 40, seed: int = 7) -> None:
+    """`count` generated parts of each family as STL meshes in mm."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for family in ("dsub", "rect", "pins"):
+        for name, part in family_parts(family, count, seed=seed).items():
+            part_mesh(part).export(folder / f"{name}.stl")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", nargs="?", help="JSON lines file the rows are appended to")
+    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
+    ap.add_argument("--pool", type=Path, help="folder of extra meshes (STL, mm)")
+    ap.add_argument("--epochs", type=int, default=100, help="stage-1 epochs over training clouds and pool")
+    ap.add_argument("--tag", default="pool")
+    ap.add_argument("--write-pool", type=Path, help="write the pool of docs/experiments.md into this folder")
+    args = ap.parse_args()
+    if args.write_pool:
+        write_pool(args.write_pool)
+        return
+    if not (args.out and args.runs and args.pool):
+        ap.error("give OUT, run folders and --pool (or --write-pool FOLDER)")
+    pool_files = sorted(args.pool.glob("*.stl"))
+    for run in args.runs:
+        run_dir = Path(run)
+        cfg = OmegaConf.load(run_dir / "config.yaml")
+        with open_dict(cfg):
+            cfg.trainer.progress_bar = False
+            cfg.stages.vae.epochs = args.epochs
+        ltv.set_backend(cfg.simulator)
+        L.seed_everything(cfg.seed, workers=True)
+        data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
+        encoder, head, dynamics = build_components(cfg)
+        extra = [PartData(f.stem, cloud_from_mesh(f, "mm", int(cfg.data.points), int(cfg.data.cloud_seed)), [], [])
+                 for f in pool_files]
+        train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
+        model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+        with tempfile.TemporaryDirectory() as tmp:
+            vae_s = fit_vae(cfg, encoder, train + extra, val, Path(tmp), False, [])
+            parts = train + val + test
+            index = {p.name: i for i, p in enumerate(parts)}
+            latents, logvars = model.latent_distribution(stack_clouds(parts))
+            head_s = fit_head(cfg, model, latents, index, train, val, Path(tmp), False, [])
+        row = {"run": str(run_dir), "variant": f"{args.tag}{len(extra)}_e{args.epochs}", "seconds": [vae_s, head_s]}
+        for split, parts_ in (("val", val), ("test", test)):
+            ctx = EvalContext(model, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed,
+                              dict(cfg.evaluation), val=[], logvars=None)
+            res = evaluate_methods(ctx, parts_, ["pipe", "nearest"])
+            row[split] = {n: r.domain["fit_F"] for n, r in res.items()}
+        print(json.dumps(row), flush=True)
+        with open(args.out, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    main()
