@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 import yaml
 
 from pipe.cli import main
@@ -80,6 +81,9 @@ BAD_INPUTS = {
     "mesh without faces": (lambda r: ((r / MESH).unlink(), (r / "parts/dsub9/mesh.obj").write_text(
         "v 0 0 0\nv 1 0 0\nv 0 1 0\n")), "parts/dsub9/mesh.obj", "no faces"),
     "text that is not a mesh": (lambda r: (r / MESH).write_text("hello, I am not an STL\n"), MESH, "not a"),
+    "flat mesh": (lambda r: trimesh.creation.box((10.0, 10.0, 0.0)).export(r / MESH), MESH, "mesh is flat"),
+    "semicolon-separated csv": (_corrupt_csv(lambda r: "t;p_z;F_z\n0;0;0\n0.1;1;1\n"), TRIAL,
+                                "seems to be ';'-separated"),
     "empty csv": (_corrupt_csv(lambda r: ""), TRIAL, "empty"),
     "missing column": (_corrupt_csv(lambda r: "t,p_z\n0,0\n0.1,1\n"), TRIAL, "missing column(s) ['F_z'"),
     "nan": (_corrupt_csv(lambda r: HEADER + "0,0,0,0\n0.002,0.1,nan,0\n0.004,0.2,1,0\n"), TRIAL, "row 2 (nan)"),

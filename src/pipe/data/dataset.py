@@ -75,7 +75,10 @@ def read_numeric_csv(path: Path, columns: tuple[str, ...]) -> dict[str, np.ndarr
         raise DatasetError(f"not a readable CSV ({str(exc).splitlines()[0]})", path) from None
     missing = [c for c in columns if c not in frame.columns]
     if missing:
-        raise DatasetError(f"missing column(s) {missing}; it has {list(frame.columns)}", path)
+        found = list(frame.columns)
+        separator = next((d for d in (";", "\t", " ") if len(found) == 1 and d in str(found[0])), None)
+        hint = f": the file seems to be {separator!r}-separated; trial CSVs are comma-separated" if separator else ""
+        raise DatasetError(f"missing column(s) {missing}; it has {found}{hint}", path)
     if len(frame) < 2:
         raise DatasetError(f"has {len(frame)} sample(s); a trial needs at least 2", path)
     out = {}

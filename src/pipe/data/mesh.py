@@ -72,6 +72,10 @@ def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
         raise DatasetError("mesh has non-finite vertex coordinates", path)
     if not mesh.area > 0:
         raise DatasetError("mesh has zero surface area (all faces degenerate)", path)
+    spread = np.linalg.svd(mesh.vertices - mesh.vertices.mean(axis=0), compute_uv=False)
+    if spread[-1] <= 1e-9 * spread[0]:
+        raise DatasetError("mesh is flat: all its vertices lie in one plane (a sketch or a single face, not a "
+                           "part); export the solid", path)
     carried = UNITS.get(str(loaded.units).lower()) if loaded.units else None
     if carried is not None:
         units = carried
