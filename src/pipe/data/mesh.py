@@ -76,7 +76,7 @@ def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     if spread[-1] <= 1e-9 * spread[0]:
         raise DatasetError("mesh is flat: all its vertices lie in one plane (a sketch or a single face, not a "
                            "part); export the solid", path)
-    carried = UNITS.get(str(loaded.units).lower()) if loaded.units else None
+    carried = UNITS.get(str(loaded.units).lower(), str(loaded.units).lower()) if loaded.units else None
     if carried is not None:
         units = carried
     elif units == "auto":
