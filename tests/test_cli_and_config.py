@@ -92,6 +92,13 @@ def test_train_reports_unknown_config_option(tmp_path):
     assert "nope" in result.stderr and "Traceback" not in result.stderr
 
 
+def test_an_unknown_plugin_name_lists_the_available_ones(tmp_path):
+    result = run_train("encoder=nope", f"hydra.run.dir={tmp_path / 'run'}")
+    assert result.returncode != 0
+    assert "Could not find 'encoder/nope'" in result.stderr and "Traceback" not in result.stderr
+    assert "dgcnn" in result.stderr and "pointnet" in result.stderr
+
+
 def test_the_simulator_option_defaults_to_the_environment_variable(monkeypatch):
     from conftest import compose_config
 
