@@ -17,23 +17,17 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import os
 import tempfile
 import time
 from pathlib import Path
 
-import lightning as L
 import torch
-from omegaconf import OmegaConf, open_dict
+from common import load_encoder, load_run, score
 
 from pipe.data.batches import stack_clouds
-from pipe.data.prepared import data_scales, prepare_domain
-from pipe.evaluation.context import EvalContext
-from pipe.evaluation.evaluate import evaluate_methods
-from pipe.model import ltv
+from pipe.data.prepared import data_scales
 from pipe.model.pipe_model import PIPEModel
-from pipe.pipeline import build_components, ensure_dataset
 from pipe.training import fit as fit_module
 from pipe.training.stages import HeadStage, check_finite
 
@@ -83,44 +77,25 @@ def main() -> None:
     args = ap.parse_args()
     for run in args.runs:
         run_dir = Path(run)
-        cfg = OmegaConf.load(run_dir / "config.yaml")
-        with open_dict(cfg):
-            cfg.trainer.progress_bar = False
-        ltv.set_backend(cfg.simulator)
-        L.seed_everything(cfg.seed, workers=True)
-        data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
-        encoder, head, dynamics = build_components(cfg)
-        state = torch.load(run_dir / "checkpoints/vae/best.ckpt", map_location="cpu", weights_only=True)["state_dict"]
-        encoder.load_state_dict({k.removeprefix("encoder."): v for k, v in state.items()})
+        cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+        load_encoder(encoder, run_dir)
         head0 = copy.deepcopy(head.state_dict())
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         model = PIPEModel(encoder, head, dynamics, *data_scales(train))
-        parts = train + val + test
-        index = {p.name: i for i, p in enumerate(parts)}
-        latents, logvars = model.latent_distribution(stack_clouds(parts))
-        tr = latents[: len(train)]
-        spread = tr.std(0)
+        index = {p.name: i for i, p in enumerate(train + val + test)}
+        latents, logvars = model.latent_distribution(stack_clouds(train + val + test))
+        spread = latents[: len(train)].std(0)
         for spec in args.variants.split(","):
-            kind, _, val_s = spec.partition("=")
-            value = float(val_s) if val_s else 0.0
+            kind, _, value = spec.partition("=")
             head.load_state_dict(head0)
-            m = model.with_head(Standardised(head, tr.mean(0), spread.clamp_min(1e-6))) if kind == "std" else model
-            m.encoder.requires_grad_(False)
-            fit_module.HeadStage = variant_stage(kind, value, spread, logvars)
+            standardised = Standardised(head, latents[: len(train)].mean(0), spread.clamp_min(1e-6))
+            variant = model.with_head(standardised) if kind == "std" else model
+            fit_module.HeadStage = variant_stage(kind, float(value or 0.0), spread, logvars)
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
-                fit_module.fit_head(cfg, m, latents, index, train, val, Path(tmp), False, [])
-            secs = time.perf_counter() - start
-            row = {"run": str(run_dir), "variant": spec, "seconds": secs}
-            for split, parts_ in (("val", val), ("test", test)):
-                ctx = EvalContext(m, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed,
-                                  dict(cfg.evaluation), val=[], logvars=None)
-                res = evaluate_methods(ctx, parts_, ["pipe", "nearest"])
-                row[split] = {n: r.domain["fit_F"] for n, r in res.items()}
-            print(json.dumps(row), flush=True)
-            with open(args.out, "a") as f:
-                f.write(json.dumps(row) + "\n")
-
+                fit_module.fit_head(cfg, variant, latents, index, train, val, Path(tmp), False, [])
+            score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start}, cfg,
+                  data, variant, latents, index)
 
 if __name__ == "__main__":
     os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))

@@ -12,22 +12,16 @@ seed 7). Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import tempfile
 from pathlib import Path
 
-import lightning as L
-from omegaconf import OmegaConf, open_dict
+from common import load_run, score
 
 from pipe.data.batches import stack_clouds
-from pipe.data.prepared import PartData, data_scales, prepare_domain
+from pipe.data.prepared import PartData, data_scales
 from pipe.data.preprocess import cloud_from_mesh
-from pipe.evaluation.context import EvalContext
-from pipe.evaluation.evaluate import evaluate_methods
-from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
-from pipe.pipeline import build_components, ensure_dataset
 from pipe.synthetic.families import family_parts
 from pipe.synthetic.meshes import part_mesh
 from pipe.training.fit import fit_head, fit_vae
@@ -58,34 +52,18 @@ def main() -> None:
     pool_files = sorted(args.pool.glob("*.stl"))
     for run in args.runs:
         run_dir = Path(run)
-        cfg = OmegaConf.load(run_dir / "config.yaml")
-        with open_dict(cfg):
-            cfg.trainer.progress_bar = False
-            cfg.stages.vae.epochs = args.epochs
-        ltv.set_backend(cfg.simulator)
-        L.seed_everything(cfg.seed, workers=True)
-        data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
-        encoder, head, dynamics = build_components(cfg)
+        cfg, data, (encoder, head, dynamics) = load_run(run_dir, epochs=args.epochs)
         extra = [PartData(f.stem, cloud_from_mesh(f, "mm", int(cfg.data.points), int(cfg.data.cloud_seed)), [], [])
                  for f in pool_files]
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         model = PIPEModel(encoder, head, dynamics, *data_scales(train))
         with tempfile.TemporaryDirectory() as tmp:
             vae_s = fit_vae(cfg, encoder, train + extra, val, Path(tmp), False, [])
-            parts = train + val + test
-            index = {p.name: i for i, p in enumerate(parts)}
-            latents, logvars = model.latent_distribution(stack_clouds(parts))
+            index = {p.name: i for i, p in enumerate(train + val + test)}
+            latents = model.latent(stack_clouds(train + val + test))
             head_s = fit_head(cfg, model, latents, index, train, val, Path(tmp), False, [])
-        row = {"run": str(run_dir), "variant": f"{args.tag}{len(extra)}_e{args.epochs}", "seconds": [vae_s, head_s]}
-        for split, parts_ in (("val", val), ("test", test)):
-            ctx = EvalContext(model, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed,
-                              dict(cfg.evaluation), val=[], logvars=None)
-            res = evaluate_methods(ctx, parts_, ["pipe", "nearest"])
-            row[split] = {n: r.domain["fit_F"] for n, r in res.items()}
-        print(json.dumps(row), flush=True)
-        with open(args.out, "a") as f:
-            f.write(json.dumps(row) + "\n")
-
+        score(args.out, {"run": str(run_dir), "variant": f"{args.tag}{len(extra)}_e{args.epochs}",
+                         "seconds": [vae_s, head_s]}, cfg, data, model, latents, index)
 
 if __name__ == "__main__":
     os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))

@@ -1,0 +1,52 @@
+"""What the experiment scripts share: a finished run's setup rebuilt as `train.py` built it, and the
+scoring of PIPE and `nearest` on its validation and test parts, appended as one JSON line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import lightning as L
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from pipe.data.prepared import PreparedDomain, prepare_domain
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import evaluate_methods
+from pipe.model import ltv
+from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_components, ensure_dataset
+
+
+def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, PreparedDomain, tuple]:
+    """The run's config (progress bar off, `stages.vae.<key>` overrides), its prepared domain and freshly
+    built encoder, head and dynamic model, seeded as train.py seeds them (so the head's initial weights are
+    the run's own)."""
+    cfg = OmegaConf.load(run_dir / "config.yaml")
+    with open_dict(cfg):
+        cfg.trainer.progress_bar = False
+        cfg.stages.vae.update(stage_overrides)
+    ltv.set_backend(cfg.simulator)
+    L.seed_everything(cfg.seed, workers=True)
+    data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
+    return cfg, data, build_components(cfg)
+
+
+def load_encoder(encoder: torch.nn.Module, run_dir: Path) -> None:
+    """The run's best stage-1 weights."""
+    state = torch.load(run_dir / "checkpoints/vae/best.ckpt", map_location="cpu", weights_only=True)["state_dict"]
+    encoder.load_state_dict({k.removeprefix("encoder."): v for k, v in state.items()})
+
+
+def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
+          index: dict[str, int]) -> None:
+    """PIPE's and `nearest`'s FIT(F) on the validation and the test parts added to `row`, printed and
+    appended to the JSON lines file `out`."""
+    for split in ("val", "test"):
+        ctx = EvalContext(model, latents, index, data.splits["train"], 1.0 / cfg.data.rate_hz, cfg.seed,
+                          dict(cfg.evaluation), val=[], logvars=None)
+        results = evaluate_methods(ctx, data.splits[split], ["pipe", "nearest"])
+        row[split] = {name: result.domain["fit_F"] for name, result in results.items()}
+    print(json.dumps(row), flush=True)
+    with open(out, "a") as handle:
+        handle.write(json.dumps(row) + "\n")
