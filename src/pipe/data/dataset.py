@@ -63,6 +63,33 @@ class Dataset:
     parts: dict[str, Part]
 
 
+def numeric_columns(frame: pd.DataFrame, names: list[str] | tuple[str, ...], path: Path,
+                    delimiter: str = ",") -> dict[str, np.ndarray]:
+    """The named columns of a table read from `path` as finite float arrays. A missing column names the
+    ones the file has and, when it has one, the delimiter the file seems to use instead of `delimiter`; a
+    missing, non-numeric, NaN or infinite value names its column and first data row."""
+    missing = [n for n in names if n not in frame.columns]
+    if missing:
+        found = list(frame.columns)
+        message = f"missing column(s) {missing[:4]}{' ...' if len(missing) > 4 else ''}; it has {found[:8]}"
+        other = next((d for d in (",", ";", "\t", " ") if len(found) == 1 and d != delimiter and d in str(found[0])),
+                     None)
+        if other is not None:
+            message += f": the file seems to be {other!r}-separated, not {delimiter!r}-separated"
+        raise DatasetError(message, path)
+    out = {}
+    for name in names:
+        values = pd.to_numeric(frame[name], errors="coerce").to_numpy(dtype=float, copy=True)  # writable
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            raw = frame[name].iloc[bad[0]]
+            shown = repr(raw) if isinstance(raw, str) else str(raw)
+            raise DatasetError(f"column {name!r} has {bad.size} missing, non-numeric, NaN or infinite value(s), "
+                               f"first at data row {bad[0] + 1} ({shown})", path)
+        out[name] = values
+    return out
+
+
 def read_numeric_csv(path: Path, columns: tuple[str, ...]) -> dict[str, np.ndarray]:
     """Read the named columns of a CSV as finite float arrays of at least two rows."""
     if not path.is_file():
@@ -73,25 +100,9 @@ def read_numeric_csv(path: Path, columns: tuple[str, ...]) -> dict[str, np.ndarr
         frame = pd.read_csv(path)
     except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise DatasetError(f"not a readable CSV ({str(exc).splitlines()[0]})", path) from None
-    missing = [c for c in columns if c not in frame.columns]
-    if missing:
-        found = list(frame.columns)
-        separator = next((d for d in (";", "\t", " ") if len(found) == 1 and d in str(found[0])), None)
-        hint = f": the file seems to be {separator!r}-separated; trial CSVs are comma-separated" if separator else ""
-        raise DatasetError(f"missing column(s) {missing}; it has {found}{hint}", path)
-    if len(frame) < 2:
+    if len(frame) < 2 and all(c in frame.columns for c in columns):
         raise DatasetError(f"has {len(frame)} sample(s); a trial needs at least 2", path)
-    out = {}
-    for name in columns:
-        values = pd.to_numeric(frame[name], errors="coerce").to_numpy(dtype=float, copy=True)  # writable
-        bad = np.flatnonzero(~np.isfinite(values))
-        if bad.size:
-            raw = frame[name].iloc[bad[0]]
-            shown = repr(raw) if isinstance(raw, str) else str(raw)
-            raise DatasetError(f"column {name!r} has {bad.size} missing, non-numeric, NaN or infinite value(s), "
-                               f"first at data row {bad[0] + 1} ({shown})", path)
-        out[name] = values
-    return out
+    return numeric_columns(frame, columns, path)
 
 
 def zero_start(time: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipe.data.dataset import numeric_columns
 from pipe.data.spec import length_to_mm
 from pipe.errors import DatasetError
 from pipe.importing.recording import AXES, Recording
@@ -125,37 +126,13 @@ def read_frame(path: Path, delimiter: str, hint: str) -> pd.DataFrame:
     return frame
 
 
-def numeric_columns(frame: pd.DataFrame, names: list[str], path: Path, delimiter: str) -> np.ndarray:
-    """The named columns as a float array (N, k); a missing column names the ones the file has and, when
-    the file has one column, the delimiter it seems to use."""
-    missing = [n for n in names if n not in frame.columns]
-    if missing:
-        found = list(frame.columns)
-        message = f"missing column(s) {missing[:4]}{' ...' if len(missing) > 4 else ''}; it has {found[:8]}"
-        if len(found) == 1:
-            other = next((d for d in (",", ";", "\t", " ") if d != delimiter and d in str(found[0])), None)
-            if other is not None:
-                message += f": the file seems to be {other!r}-separated, not {delimiter!r}-separated"
-        raise DatasetError(message, path)
-    if frame.empty:
-        raise DatasetError("has a header but no samples", path)
-    out = np.empty((len(frame), len(names)))
-    for i, name in enumerate(names):
-        values = pd.to_numeric(frame[name], errors="coerce").to_numpy(dtype=float)
-        bad = np.flatnonzero(~np.isfinite(values))
-        if bad.size:
-            raise DatasetError(f"column {name!r} has {bad.size} missing, non-numeric, NaN or infinite value(s), "
-                               f"first at data row {bad[0] + 1} ({frame[name].iloc[bad[0]]!r})", path)
-        out[:, i] = values
-    return out
-
-
 def read_ur(path: Path, delimiter: str, hint: str) -> Recording:
     """A Universal Robots recording: `timestamp` s, `actual_TCP_pose_0..5` (m, rotation vector in rad) and
     `actual_TCP_force_0..5` (N, Nm) in the base frame."""
     frame = read_frame(path, delimiter, hint)
-    values = numeric_columns(frame, [UR_TIME, *UR_POSE, *UR_FORCE[:3]], path, delimiter)
-    return Recording(path, values[:, 0], values[:, 1:4] * 1000.0, values[:, 7:10], rotation=values[:, 4:7])
+    columns = numeric_columns(frame, [UR_TIME, *UR_POSE, *UR_FORCE[:3]], path, delimiter)
+    pose, force = (np.stack([columns[c] for c in names], axis=1) for names in (UR_POSE, UR_FORCE[:3]))
+    return Recording(path, columns[UR_TIME], pose[:, :3] * 1000.0, force, rotation=pose[:, 3:])
 
 
 @register("rtde", ("*.csv", "*.txt"), "Universal Robots RTDE recorder CSV (space-separated, e.g. record.py)")
@@ -177,7 +154,7 @@ def read_table(path: Path, options: ReaderOptions) -> Recording:
     frame = read_frame(path, options.delimiter, "CSV or Parquet table")
     groups = {"position": cols.position, "force": cols.force, "rotation": cols.rotation}
     names = [cols.time, *(c for group in groups.values() for c in group.values())]
-    values = dict(zip(names, numeric_columns(frame, names, path, options.delimiter).T))
+    values = numeric_columns(frame, names, path, options.delimiter)
 
     def axes(mapping: Mapping[str, str]) -> np.ndarray:
         return np.stack([values[mapping[a]] if a in mapping else np.zeros(len(frame)) for a in AXES], axis=1)
