@@ -1,6 +1,6 @@
 """CAD in every common format, in millimetres, turned onto its insertion axis: a 10 x 20 x 30 mm box written
-in each format (STEP by hand, as a faceted B-rep) must come back 10 x 20 x 30 mm; the real screw that lies
-along x must come out along z."""
+in each format (STEP by hand, as a faceted B-rep) must come back 10 x 20 x 30 mm, as must a real IGES pin
+written by OpenCascade in mm and in inches; the real screw that lies along x must come out along z."""
 
 from __future__ import annotations
 
@@ -13,11 +13,12 @@ import trimesh
 import yaml
 
 from pipe.data.check import check_dataset
-from pipe.data.mesh import load_mesh, orient
+from pipe.data.mesh import iges_units, load_mesh, orient
 from pipe.data.preprocess import cloud_from_mesh
 from pipe.errors import DatasetError
 
 BOX_MM = (10.0, 20.0, 30.0)
+DATA = Path(__file__).resolve().parent / "data"
 
 
 def step_box(size: tuple[float, float, float], prefix: str | None) -> str:
@@ -93,19 +94,43 @@ def test_step_is_read_in_the_unit_it_declares(tmp_path: Path, prefix: str | None
     np.testing.assert_allclose(np.ptp(cloud.points, axis=0), [30.0, 20.0, 10.0], atol=1.0)   # x turned onto z
 
 
-def test_iges_goes_through_opencascade_as_iges(tmp_path: Path, monkeypatch) -> None:
-    """The IGES path hands the file to cascadio as IGES and reads the glTF it returns (cascadio stubbed:
-    writing an IGES B-rep by hand is out of reach; the STEP test above runs the real conversion)."""
+@pytest.mark.parametrize("unit", ["mm", "in"])
+def test_iges_is_read_in_the_unit_it_declares(unit: str) -> None:
+    """A real IGES B-rep written by OpenCascade (tests/data/write_iges.py: a dowel pin 6 mm across and 20 mm
+    long, chamfered) in mm and in inches comes back 6 x 6 x 20 mm, closed, with about the chamfered
+    cylinder's volume (pi 3^2 20 less the chamfers: 559.15 mm^3 by OpenCascade's own integration).
+    cascadio passes IGES coordinates on in the file's unit, not in metres as it does STEP's."""
+    pytest.importorskip("cascadio", reason="the optional extra cad is not installed (pip install 'pipe-sysid[cad]')")
+    mesh = load_mesh(DATA / f"dowel6x20_{unit}.igs", "m")     # the declared unit is for unitless formats only
+    np.testing.assert_allclose(np.sort(mesh.extents), [6.0, 6.0, 20.0], atol=0.1)
+    assert mesh.is_watertight and mesh.metadata["file_units"] == unit
+    assert mesh.volume == pytest.approx(559.15, rel=0.02)
+
+
+def test_iges_units_from_the_global_section() -> None:
+    """The unit flag is the global section's 14th parameter; flag 3 names the unit in the 15th; a file may
+    choose its own delimiter (parameter 1) and strings are Hollerith (nH...), which may hold the delimiter."""
+    def iges(global_section: str) -> bytes:
+        lines = [global_section[i:i + 72] for i in range(0, len(global_section), 72)]
+        return "".join(f"{line:<72}G{n + 1:07d}\n" for n, line in enumerate(lines)).encode()
+
+    fields = ",,4Ha,b;,8Hpart.igs,5Hmaker,3H7.8,32,308,15,308,15,,1.,{flag},{name},1,0.01,13H260101.000000,1E-07;"
+    assert iges_units(iges(fields.format(flag=1, name="4HINCH"))) == "in"
+    assert iges_units(iges(fields.format(flag=10, name="2HCM"))) == "cm"
+    assert iges_units(iges(fields.format(flag=3, name="2HMM"))) == "mm"
+    assert iges_units(iges("1H//1H;/" + fields[2:].replace(",", "/").format(flag=6, name="1HM"))) == "m"
+    with pytest.raises(DatasetError, match="IGES unit flag 3 .*FURLONG"):
+        iges_units(iges(fields.format(flag=3, name="7HFURLONG")))
+    with pytest.raises(DatasetError, match="no unit flag"):
+        iges_units(b"not an IGES file\n")
+
+
+def test_unreadable_iges_is_refused_by_name(tmp_path: Path, monkeypatch) -> None:
+    """When OpenCascade returns nothing (cascadio's sign of a file it cannot read), the error names the file."""
     cascadio = pytest.importorskip("cascadio", reason="the optional extra cad is not installed")
-    glb = trimesh.creation.box(np.array(BOX_MM) / 1000.0).export(file_type="glb")
-    calls = []
-    monkeypatch.setattr(cascadio, "load", lambda data, file_type: calls.append((data, file_type)) or glb)
-    (tmp_path / "box.igs").write_bytes(b"an IGES file")
-    mesh = load_mesh(tmp_path / "box.igs", "mm")
-    assert calls == [(b"an IGES file", "iges")]
-    np.testing.assert_allclose(np.sort(mesh.extents), BOX_MM, rtol=1e-5)
     monkeypatch.setattr(cascadio, "load", lambda data, file_type: b"")
-    with pytest.raises(DatasetError, match="OpenCascade could not read this IGES file"):
+    (tmp_path / "box.igs").write_bytes(b"an IGES file")
+    with pytest.raises(DatasetError, match="box.igs.*OpenCascade could not read this IGES file"):
         load_mesh(tmp_path / "box.igs", "mm")
 
 

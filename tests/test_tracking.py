@@ -15,6 +15,7 @@ from conftest import ROOT, TINY_DOMAIN, smoke_config
 from mlflow.tracking import MlflowClient
 
 from pipe import pipeline as run_module
+from pipe.errors import PipeError
 from pipe.pipeline import run_domain
 from pipe.tracking import dataset_version, flatten
 
@@ -80,6 +81,23 @@ def test_a_crashing_run_ends_failed(tiny_data, tmp_path, monkeypatch):
     experiment = mlflow.get_experiment_by_name("pipe").experiment_id
     new = [r for r in MlflowClient().search_runs([experiment]) if r.info.run_id not in before]
     assert [r.info.status for r in new] == ["FAILED"]
+
+
+def test_resuming_into_a_deleted_or_unknown_run_is_refused_with_what_to_do(tiny_data, tmp_path):
+    """resume= continues the MLflow run whose id the run folder holds; when the store has deleted it, or never
+    held it, the user gets the file, the run and the ways out, and no new run is started."""
+    run_dir = tmp_path / "run"
+    (run_dir / "checkpoints").mkdir(parents=True)
+    experiment = mlflow.set_experiment("pipe").experiment_id
+    deleted = MlflowClient().create_run(experiment).info.run_id
+    MlflowClient().delete_run(deleted)
+    for run_id, problem in ((deleted, "was deleted"), ("0" * 32, "is not in it")):
+        (run_dir / "mlflow_run_id").write_text(run_id + "\n")
+        before = {r.info.run_id for r in MlflowClient().search_runs([experiment])}
+        with pytest.raises(PipeError, match=rf"mlflow_run_id: resume= continues the MLflow run {run_id}.*{problem}"
+                                            r".*mlflow runs restore.*delete this file"):
+            run_domain(smoke_config(tiny_data, tmp_path, f"resume={run_dir}"))
+        assert {r.info.run_id for r in MlflowClient().search_runs([experiment])} == before
 
 
 @pytest.mark.slow

@@ -175,7 +175,7 @@ def run_domain(cfg: DictConfig) -> RunResult:
     run_name = f"{data.domain.name} {names['encoder']} {names['model']}"
     id_file = run_dir / RUN_ID_FILE
     resume_id = id_file.read_text().strip() if resume and tracking and id_file.is_file() else None
-    with tracked_run(cfg, run_name, tags, resume_id) if tracking else nullcontext() as active:
+    with tracked_run(cfg, run_name, tags, resume_id, id_file) if tracking else nullcontext() as active:
         if tracking:
             write_text_atomically(id_file, active.info.run_id + "\n")   # resume= continues this run
         loggers = [StageLogger(run_id=active.info.run_id, tracking_uri=mlflow.get_tracking_uri())] if tracking else []

@@ -23,10 +23,12 @@ import torch
 from hydra.experimental.callback import Callback
 from lightning.pytorch.loggers import MLFlowLogger
 from mlflow.entities import Metric
+from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from pipe import __version__
+from pipe.errors import PipeError
 from pipe.store import artifact_location, tracking_uri
 
 PARENT_RUN_ENV = "PIPE_MLFLOW_PARENT_RUN_ID"
@@ -96,13 +98,15 @@ def stop_on_signals() -> None:
 
 @contextmanager
 def tracked_run(cfg: DictConfig, run_name: str, tags: dict[str, str],
-                resume_id: str | None = None) -> Iterator[mlflow.ActiveRun]:
+                resume_id: str | None = None, id_file: Path | None = None) -> Iterator[mlflow.ActiveRun]:
     """An MLflow run for one domain training: params and tags logged; FAILED if anything raises, KILLED
     on Ctrl-C or SIGTERM, FINISHED otherwise (never left RUNNING). Inside a multirun it is a child of the
-    sweep's run. `resume_id`: continue that run (a resumed training), whose params are already logged."""
+    sweep's run. `resume_id`: continue that run (a resumed training, its id read from `id_file`), whose
+    params are already logged."""
     experiment_id = use_experiment(cfg)
     parent = os.environ.get(PARENT_RUN_ENV)
     if resume_id is not None:
+        _check_resumable(resume_id, id_file)
         run = mlflow.start_run(run_id=resume_id, tags=tags)
     else:
         run = mlflow.start_run(experiment_id=experiment_id, run_name=run_name, parent_run_id=parent, tags=tags)
@@ -119,6 +123,21 @@ def tracked_run(cfg: DictConfig, run_name: str, tags: dict[str, str],
             MlflowClient().set_terminated(parent, "KILLED" if killed else "FAILED")
         raise
     mlflow.end_run("FINISHED")
+
+
+def _check_resumable(run_id: str, id_file: Path | None) -> None:
+    """Refuse, with what to do, to resume into an MLflow run the store does not hold or holds as deleted."""
+    try:
+        state = MlflowClient().get_run(run_id).info.lifecycle_stage
+    except MlflowException:
+        state = None
+    if state == "active":
+        return
+    problem = "was deleted" if state == "deleted" else "is not in it (another store, or deleted for good)"
+    raise PipeError(f"resume= continues the MLflow run {run_id}, written there when the training started, but "
+                    f"the store {mlflow.get_tracking_uri()} {problem}. Restore it (mlflow runs restore --run-id "
+                    f"{run_id}), point MLFLOW_TRACKING_URI or mlflow.tracking_uri at the store that holds it, or "
+                    "delete this file to continue the training in a new MLflow run", id_file)
 
 
 def open_parent_run(config: DictConfig, run_name: str, tags: dict[str, str]) -> tuple[str, str | None]:

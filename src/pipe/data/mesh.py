@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,13 @@ BREP_TYPES = {".step": "step", ".stp": "step", ".iges": "iges", ".igs": "iges"}
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf", ".3mf", *BREP_TYPES)
 CAD_EXTRA = "pip install 'pipe-sysid[cad]'"
 UNITS = {"meters": "m", "millimeters": "mm", "millimeter": "mm", "meter": "m", "inches": "in", "inch": "in",
-         "centimeters": "cm", "centimeter": "cm", "micron": "um", "microns": "um", "feet": "ft", "foot": "ft"}
+         "centimeters": "cm", "centimeter": "cm", "micron": "micron", "microns": "micron", "feet": "feet",
+         "foot": "feet"}
+# IGES's global-section unit flag (parameter 14; 3: the unit's name in parameter 15) -> a unit trimesh knows
+IGES_UNIT_FLAGS = {1: "in", 2: "mm", 4: "feet", 5: "miles", 6: "m", 7: "kilometers", 8: "mil", 9: "microns",
+                   10: "cm", 11: "microinches"}
+IGES_UNIT_NAMES = {"IN": "in", "INCH": "in", "MM": "mm", "FT": "feet", "MI": "miles", "M": "m", "KM": "kilometers",
+                   "MIL": "mil", "UM": "microns", "CM": "cm", "UIN": "microinches"}
 log = logging.getLogger(__name__)
 
 
@@ -36,10 +43,48 @@ def _read(path: Path) -> trimesh.Trimesh | trimesh.Scene:
     except ImportError:
         raise DatasetError(f"reading {brep.upper()} needs the optional extra 'cad' (cascadio, an OpenCascade "
                            f"binding): {CAD_EXTRA}", path) from None
-    glb = bytes(cascadio.load(path.read_bytes(), file_type=brep))
+    data = path.read_bytes()
+    glb = bytes(cascadio.load(data, file_type=brep))
     if not glb:
         raise DatasetError(f"OpenCascade could not read this {brep.upper()} file", path)
-    return trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh", process=True)
+    mesh = trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh", process=True)
+    if brep == "iges":    # cascadio converts STEP into metres but passes IGES coordinates on in the file's unit
+        mesh.units = iges_units(data, path)
+    return mesh
+
+
+def iges_units(data: bytes, path: Path | None = None) -> str:
+    """The length unit an IGES file declares in its global section (parameters 14 and 15)."""
+    text = data.decode("latin-1").replace("\r", "")
+    globals_ = "".join(line[:72] for line in text.split("\n") if len(line) >= 73 and line[72] == "G")
+    delimiter = ","
+    if globals_.startswith("1H"):                      # parameter 1 names the delimiter when it is not a comma
+        delimiter = globals_[2]
+    values: list[str] = []
+    i = 0
+    while i < len(globals_) and len(values) < 15:
+        hollerith = re.match(r"\s*(\d+)H", globals_[i:])
+        if hollerith:                                    # a string: nH and n characters
+            start = i + hollerith.end()
+            values.append(globals_[start:start + int(hollerith.group(1))])
+            i = start + int(hollerith.group(1))
+            end = globals_.find(delimiter, i)
+        else:
+            end = globals_.find(delimiter, i)
+            values.append(globals_[i:end if end >= 0 else len(globals_)].strip().rstrip(";"))
+        if end < 0:
+            break
+        i = end + 1
+    try:
+        flag = int(float(values[13]))
+    except (IndexError, ValueError):
+        raise DatasetError("not a readable IGES file: its global section has no unit flag (parameter 14)",
+                           path) from None
+    name = values[14].strip().upper() if len(values) > 14 else ""
+    unit = IGES_UNIT_NAMES.get(name) if flag == 3 else IGES_UNIT_FLAGS.get(flag)
+    if unit is None:
+        raise DatasetError(f"IGES unit flag {flag} ({name or 'no name'}) is not a length unit pipe knows", path)
+    return unit
 
 
 def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
