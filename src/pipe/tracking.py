@@ -75,10 +75,19 @@ def git_commit(root: Path) -> str:
 
 class StageLogger(MLFlowLogger):
     """Lightning's MLflow logger writing a stage's epochs into the domain's run without ending it:
-    the run spans both stages and the evaluation, and `tracked_run` sets its final status."""
+    the run spans both stages and the evaluation, and `tracked_run` sets its final status.
+
+    It logs asynchronously, through MLflow's own queue and writer thread, which merges what arrived within
+    MLFLOW_ASYNC_LOGGING_BUFFERING_SECONDS (default here 5 s) into one write: a synchronous write into the
+    SQLite store took about 8 ms per epoch and split, 10 s of a conn training's 130 s. The stage's metrics
+    are all written when it ends (`finalize`, which Lightning calls on success and on failure)."""
+
+    def __init__(self, run_id: str, tracking_uri: str) -> None:
+        os.environ.setdefault("MLFLOW_ASYNC_LOGGING_BUFFERING_SECONDS", "5")
+        super().__init__(run_id=run_id, tracking_uri=tracking_uri, synchronous=False)
 
     def finalize(self, status: str = "success") -> None:
-        pass
+        self.experiment._tracking_client.store.flush_async_logging()
 
 
 _signalled: list[int] = []   # the signals that stopped this process, for the runs' final status

@@ -71,11 +71,15 @@ def nearest_sq_distances(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor
 
 def chamfer(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Paper: sum over x of min_y ||x - y||^2 plus sum over y of min_x ||x - y||^2, per cloud (B,)."""
-    to_y, to_x = nearest_sq_distances(x, y)
-    return to_y.sum(dim=1) + to_x.sum(dim=1)
+    return chamfer_and_mean_distance(x, y)[0]
 
 
 def mean_nearest_distance(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Mean Euclidean nearest-neighbour distance, both ways averaged, per cloud (B,): the paper's 0.012 mm."""
+    return chamfer_and_mean_distance(x, y)[1]
+
+
+def chamfer_and_mean_distance(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """`chamfer` and `mean_nearest_distance` (B,) from one search for the nearest pairs."""
     to_y, to_x = nearest_sq_distances(x, y)
-    return 0.5 * (to_y.sqrt().mean(dim=1) + to_x.sqrt().mean(dim=1))
+    return to_y.sum(dim=1) + to_x.sum(dim=1), 0.5 * (to_y.sqrt().mean(dim=1) + to_x.sqrt().mean(dim=1))

@@ -7,7 +7,7 @@ import torch
 
 from pipe.data.batches import TrialBatch
 from pipe.errors import PipeError
-from pipe.model.chamfer import chamfer, mean_nearest_distance
+from pipe.model.chamfer import chamfer, chamfer_and_mean_distance
 from pipe.model.losses import kl_divergence
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
@@ -39,7 +39,11 @@ class VAEStage(L.LightningModule):
     def _step(self, clouds: torch.Tensor, split: str) -> torch.Tensor:
         out = self.encoder(clouds)
         check_finite(out.recon, f"{split} reconstruction", self, "stage 1 (VAE)", "stages.vae.lr")
-        rec = chamfer(out.recon, clouds).mean()
+        if split == "val":     # the nearest pairs once, for the loss and the paper's distance
+            rec, distance = chamfer_and_mean_distance(out.recon, clouds)
+        else:
+            rec = chamfer(out.recon, clouds)
+        rec = rec.mean()
         kl = kl_divergence(out.mu, out.logvar).mean()
         loss = rec + self.kl_weight * kl
         check_finite(loss, f"{split} loss", self, "stage 1 (VAE)", "stages.vae.lr")
@@ -47,7 +51,7 @@ class VAEStage(L.LightningModule):
         self.log_dict({f"vae/{split}_loss": loss, f"vae/{split}_chamfer": rec, f"vae/{split}_kl": kl},
                       batch_size=size, on_epoch=True, on_step=False, prog_bar=split == "val")
         if split == "val":
-            self.log("vae/val_nn_distance_mm", mean_nearest_distance(out.recon, clouds).mean(), batch_size=size)
+            self.log("vae/val_nn_distance_mm", distance.mean(), batch_size=size)
         return loss
 
     def training_step(self, clouds: torch.Tensor, batch_idx: int) -> torch.Tensor:
