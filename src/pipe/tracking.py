@@ -79,8 +79,8 @@ class StageLogger(MLFlowLogger):
 
     It logs asynchronously, through MLflow's own queue and writer thread, which merges what arrived within
     MLFLOW_ASYNC_LOGGING_BUFFERING_SECONDS (default here 5 s) into one write: a synchronous write into the
-    SQLite store took about 8 ms per epoch and split, 10 s of a conn training's 130 s. The stage's metrics
-    are all written when it ends (`finalize`, which Lightning calls on success and on failure)."""
+    SQLite store took about 8 ms twice an epoch, which the training waited for (BENCHMARKS.md). The stage's
+    metrics are all written when it ends (`finalize`, which Lightning calls on success and on failure)."""
 
     def __init__(self, run_id: str, tracking_uri: str) -> None:
         os.environ.setdefault("MLFLOW_ASYNC_LOGGING_BUFFERING_SECONDS", "5")

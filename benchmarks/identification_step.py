@@ -1,0 +1,127 @@
+"""Where one system-identification evaluation (the loss and gradient an L-BFGS step asks for) spends its time,
+on a conn test part's trials (10 trials of up to 487 samples), from the neutral start, as
+`pipe.evaluation.identification.fit_start` computes it:
+
+- the whole evaluation at the part's length, and with the trials cut to 100 and 10 samples (what does not
+  grow with the samples is the fixed cost of torch's autograd and Python);
+- its parts: the Gaussian head's profile Theta(p_z) (forward + backward), the discretisation and the
+  recurrence of the compiled simulator;
+- three whole starts fitted one after another with torch on 2 threads and on 1, and in two Python threads
+  with torch on 1 (the starts are independent).
+
+    python benchmarks/identification_step.py [--repeats 200]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def median_ms(fn, repeats: int) -> float:
+    for _ in range(5):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1e3
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=200)
+    args = parser.parse_args()
+    os.environ.setdefault("PROJECT_ROOT", str(ROOT))
+    import torch
+    from hydra import compose, initialize_config_module
+
+    from pipe.data.batches import collate_trials
+    from pipe.data.prepared import data_scales, prepare_domain, profile_scales
+    from pipe.data.preprocess import Profile
+    from pipe.evaluation.context import EvalContext
+    from pipe.evaluation.identification import IdentificationSettings, _identify_part, start_head
+    from pipe.model import ltv
+    from pipe.model.losses import masked_mse
+    from pipe.model.pipe_model import PIPEModel
+    from pipe.pipeline import build_components, ensure_dataset
+
+    with initialize_config_module("pipe.conf", version_base="1.3"):
+        cfg = compose("config", overrides=["domain=conn"])
+    data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
+    encoder, head, dynamics = build_components(cfg)
+    train, test = data.splits["train"], data.splits["test"]
+    ctx = EvalContext(PIPEModel(encoder, head, dynamics, *data_scales(train)), torch.zeros(1, encoder.latent_dim),
+                      {}, train, 1.0 / cfg.data.rate_hz, 0, dict(cfg.evaluation))
+    ltv.set_backend("compiled")
+    settings = IdentificationSettings.from_config(cfg.evaluation.identification)
+    jobs = [(part, [Profile(p.time, p.depth, p.force) for p in part.profiles]) for part in test]
+    part, trials = jobs[0]
+    batch = collate_trials([(0, p) for p in trials])
+    scaled = ctx.model.with_head(ctx.model.head, ctx.model.dynamics.parameter_scales(*profile_scales(trials)))
+    free = start_head(ctx.model.head, part.name, 0, 0)
+    joint = scaled.with_head(free.train())
+    z = torch.zeros(len(batch.part), free.latent_dim)
+
+    def evaluation(samples: int) -> None:
+        depth, force, mask = (t[:, :samples] for t in (batch.depth, batch.force, batch.mask))
+        for p in free.parameters():
+            p.grad = None
+        mse = masked_mse(joint(z, depth, batch.dt), force, mask)
+        values = torch.cat([p.reshape(-1) for p in free.parameters()])
+        (torch.log(mse + 1e-6) + settings.ridge * values.pow(2).mean()).backward()
+
+    samples = batch.depth.shape[1]
+    print(f"{part.name}: {len(trials)} trials of up to {samples} samples; median of {args.repeats}, "
+          f"{torch.get_num_threads()} torch threads")
+    print("| part of one evaluation (forward + backward) | ms |")
+    print("| --- | --- |")
+    for length in (samples, 100, 10):
+        ms = median_ms(lambda length=length: evaluation(length), args.repeats)
+        print(f"| the whole evaluation, {length} samples | {ms:.2f} |")
+
+    depth_max = batch.depth.abs().amax(dim=1)
+
+    def profile() -> None:
+        free.zero_grad(set_to_none=True)
+        joint.profile(z, depth_max)(batch.depth).sum().backward()
+
+    with torch.no_grad():
+        theta = joint.profile(z, depth_max)(batch.depth)
+        a, b = dynamics.state_space(ltv.midpoints(theta))
+    leaves = [t.clone().requires_grad_() for t in (a, b)]
+    u = ltv.midpoints(batch.depth)
+    phi, gamma = (t.detach() for t in ltv.discretize(a, b, batch.dt))
+    steps = [t.clone().requires_grad_() for t in (phi, gamma)]
+    parts = {"Theta(p_z) of the Gaussian head": profile,
+             "discretisation (compiled)": lambda: sum(t.sum() for t in ltv.discretize(*leaves, batch.dt)).backward(),
+             "recurrence (compiled)": lambda: ltv.recurrence(*steps, u).sum().backward()}
+    for name, fn in parts.items():
+        print(f"| {name} | {median_ms(fn, args.repeats):.2f} |")
+
+    starts = replace(settings, restarts=2)
+    print("\n| three parts, two starts each | seconds |")
+    print("| --- | --- |")
+    for threads in (2, 1):
+        torch.set_num_threads(threads)
+        start = time.perf_counter()
+        for job in jobs:
+            _identify_part(ctx, *job, starts)
+        print(f"| one after another, torch on {threads} thread(s) | {time.perf_counter() - start:.2f} |")
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    with ThreadPoolExecutor(2) as pool:
+        list(pool.map(lambda job: _identify_part(ctx, *job, starts), jobs))
+    print(f"| two Python threads, torch on 1 thread each | {time.perf_counter() - start:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
