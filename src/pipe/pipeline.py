@@ -41,6 +41,7 @@ from pipe.synthetic import generate_dataset
 from pipe.tracking import (
     StageLogger,
     dataset_version,
+    dvc_dataset_tags,
     git_commit,
     log_outputs,
     log_run_metrics,
@@ -170,7 +171,8 @@ def run_domain(cfg: DictConfig) -> RunResult:
     write_text_atomically(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     names = {kind: cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "head", "model")}
     tags = {"domain": data.domain.name, **names, "git_commit": git_commit(Path(cfg.paths.root)),
-            "dataset": str(data.dataset_dir), "dataset_version": dataset_version(data.dataset_dir)}
+            "dataset": str(data.dataset_dir), "dataset_version": dataset_version(data.dataset_dir),
+            **dvc_dataset_tags(data.dataset_dir)}
     tracking = cfg.mlflow.enabled
     run_name = f"{data.domain.name} {names['encoder']} {names['model']}"
     id_file = run_dir / RUN_ID_FILE

@@ -20,6 +20,7 @@ from typing import Any
 import mlflow
 import mlflow.pytorch
 import torch
+import yaml
 from hydra.experimental.callback import Callback
 from lightning.pytorch.loggers import MLFlowLogger
 from mlflow.entities import Metric
@@ -62,6 +63,29 @@ def dataset_version(root: Path) -> str:
         digest.update(path.relative_to(root).as_posix().encode())
         digest.update(path.read_bytes())
     return digest.hexdigest()[:16]
+
+
+def dvc_dataset_tags(root: Path) -> dict[str, str]:
+    """The DVC version of a dataset folder, where DVC tracks it: the hash that `dvc add` recorded in the
+    `<folder>.dvc` file beside it, or the one a `dvc.lock` above it records for the stage that wrote it.
+    Tags `dvc_dataset_md5` (DVC's directory hash) and `dvc_dataset_file` (the file that records it); none
+    for a folder DVC does not track."""
+    root = root.resolve()
+    candidates = [(root.with_name(root.name + ".dvc"), lambda entry: entry.get("outs", []))]
+    candidates += [(folder / "dvc.lock", lambda entry: [out for stage in entry.get("stages", {}).values()
+                                                          for out in stage.get("outs", [])])
+                   for folder in root.parents]
+    for record, outs_of in candidates:
+        if not record.is_file():
+            continue
+        try:
+            entry = yaml.safe_load(record.read_text()) or {}
+        except (OSError, yaml.YAMLError):
+            continue
+        for out in outs_of(entry):
+            if (record.parent / str(out.get("path", ""))).resolve() == root and out.get("md5"):
+                return {"dvc_dataset_md5": str(out["md5"]), "dvc_dataset_file": str(record)}
+    return {}
 
 
 def git_commit(root: Path) -> str:
