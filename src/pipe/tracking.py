@@ -71,18 +71,15 @@ def dvc_dataset_tags(root: Path) -> dict[str, str]:
     Tags `dvc_dataset_md5` (DVC's directory hash) and `dvc_dataset_file` (the file that records it); none
     for a folder DVC does not track."""
     root = root.resolve()
-    candidates = [(root.with_name(root.name + ".dvc"), lambda entry: entry.get("outs", []))]
-    candidates += [(folder / "dvc.lock", lambda entry: [out for stage in entry.get("stages", {}).values()
-                                                          for out in stage.get("outs", [])])
-                   for folder in root.parents]
-    for record, outs_of in candidates:
+    for record in (root.with_name(root.name + ".dvc"), *(folder / "dvc.lock" for folder in root.parents)):
         if not record.is_file():
             continue
         try:
             entry = yaml.safe_load(record.read_text()) or {}
         except (OSError, yaml.YAMLError):
             continue
-        for out in outs_of(entry):
+        stages = entry.get("stages", {}).values()          # dvc.lock; a .dvc file lists its outs at the top
+        for out in [*entry.get("outs", []), *(out for stage in stages for out in stage.get("outs", []))]:
             if (record.parent / str(out.get("path", ""))).resolve() == root and out.get("md5"):
                 return {"dvc_dataset_md5": str(out["md5"]), "dvc_dataset_file": str(record)}
     return {}

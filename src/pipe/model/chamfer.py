@@ -69,17 +69,25 @@ def nearest_sq_distances(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor
     return (x - _gather(y, to_y)).pow(2).sum(-1), (y - _gather(x, to_x)).pow(2).sum(-1)
 
 
+def _chamfer(to_y: torch.Tensor, to_x: torch.Tensor) -> torch.Tensor:
+    return to_y.sum(dim=1) + to_x.sum(dim=1)
+
+
+def _mean_distance(to_y: torch.Tensor, to_x: torch.Tensor) -> torch.Tensor:
+    return 0.5 * (to_y.sqrt().mean(dim=1) + to_x.sqrt().mean(dim=1))
+
+
 def chamfer(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Paper: sum over x of min_y ||x - y||^2 plus sum over y of min_x ||x - y||^2, per cloud (B,)."""
-    return chamfer_and_mean_distance(x, y)[0]
+    return _chamfer(*nearest_sq_distances(x, y))
 
 
 def mean_nearest_distance(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Mean Euclidean nearest-neighbour distance, both ways averaged, per cloud (B,): the paper's 0.012 mm."""
-    return chamfer_and_mean_distance(x, y)[1]
+    return _mean_distance(*nearest_sq_distances(x, y))
 
 
 def chamfer_and_mean_distance(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """`chamfer` and `mean_nearest_distance` (B,) from one search for the nearest pairs."""
-    to_y, to_x = nearest_sq_distances(x, y)
-    return to_y.sum(dim=1) + to_x.sum(dim=1), 0.5 * (to_y.sqrt().mean(dim=1) + to_x.sqrt().mean(dim=1))
+    pairs = nearest_sq_distances(x, y)
+    return _chamfer(*pairs), _mean_distance(*pairs)
