@@ -50,7 +50,7 @@ def main() -> None:
 
     with initialize_config_module("pipe.conf", version_base="1.3"):
         cfg = compose("config", overrides=["domain=conn"])
-    data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
+    data = prepare_domain(ensure_dataset(cfg.data, Path(cfg.paths.root)), cfg.data, cfg.domain)
     encoder, head, dynamics = build_components(cfg)
     train, test = data.splits["train"], data.splits["test"]
     ctx = EvalContext(PIPEModel(encoder, head, dynamics, *data_scales(train)), torch.zeros(1, encoder.latent_dim),

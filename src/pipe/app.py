@@ -31,14 +31,15 @@ def _train(cfg: DictConfig) -> None:
 
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # device banners and tips, twice
     stop_on_signals()
-    title = (f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
-             f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
     try:
+        job_config(cfg)
         result = run_seeds(cfg) if cfg.seeds is not None else run_domain(cfg)
     except PipeError as err:
         if debugging():
             raise
         sys.exit(fail(str(err)))
+    title = (f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
+             f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
     if cfg.seeds is not None:
         table = Table("method", "FIT(F) [%]", "FIT(dF/dt) [%]", "rms [N]", "rms_rel", "PIPE vs it (FIT(F))",
                       title=f"{title}, mean ± std over seeds {', '.join(map(str, result.seeds))}")
@@ -56,6 +57,22 @@ def _train(cfg: DictConfig) -> None:
         model = "<a seed's run id, in seed_<k>/mlflow_run_id>" if cfg.seeds is not None else result.mlflow_run_id
         console.print(f"MLflow run {result.mlflow_run_id} (`mlflow ui` from the project root); predict with: "
                       f"python predict.py mesh=<part.stl> run={model}")
+
+
+def job_config(cfg: DictConfig) -> None:
+    """Complete the composed config in place: the run's folder (Hydra's, of this job), and with `params=`
+    the values of that parameter file (pipe.params)."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import open_dict
+
+    from pipe.params import apply_params
+
+    hydra_cfg = HydraConfig.get()
+    with open_dict(cfg):
+        cfg.paths.output_dir = hydra_cfg.runtime.output_dir
+    if cfg.params is not None:
+        groups = {name.split("/")[0] for name in hydra_cfg.runtime.choices if not name.startswith("hydra")}
+        apply_params(cfg, Path(cfg.paths.root) / cfg.params, groups, list(hydra_cfg.overrides.task))
 
 
 @hydra.main(version_base="1.3", config_path=PIPE_CONFIG, config_name="predict")

@@ -1,4 +1,4 @@
-"""The `pipe` command line: `pipe data generate|import|check|pointcloud` and `pipe report curve`."""
+"""The `pipe` command line: `pipe data generate|import|check|pointcloud`, `pipe params` and `pipe report curve|summary`."""
 
 from __future__ import annotations
 
@@ -130,6 +130,32 @@ def cmd_curve(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_summary(args: argparse.Namespace) -> int:
+    import yaml
+
+    from pipe.evaluation.summary import write_summary
+
+    domains = None
+    if args.params is not None:
+        if not args.params.is_file():
+            return fail(f"{args.params}: params file does not exist")
+        domains = list((yaml.safe_load(args.params.read_text()) or {}).get("domains") or [])
+        if not domains:
+            return fail(f"{args.params}: names no domains (a list under `domains`)")
+    written = write_summary(args.runs, args.out, domains)
+    console.print(f"wrote {', '.join(str(p) for p in written)}")
+    return 0
+
+
+def cmd_params(args: argparse.Namespace) -> int:
+    from pipe.params import compose_params
+
+    compose_params(args.out, args.overrides)
+    console.print(f"wrote {args.out} (conf/pipeline.yaml{' with ' + ' '.join(args.overrides) if args.overrides else ''})",
+                  markup=False)
+    return 0
+
+
 def add_import_parser(verbs: argparse._SubParsersAction) -> None:
     from pipe.importing.insertion import FRAMES, InsertionSettings
     from pipe.importing.readers import READERS, TIME_UNITS, ReaderOptions
@@ -228,6 +254,12 @@ def build_parser() -> argparse.ArgumentParser:
     cloud.add_argument("--out", type=Path, help="write the points (n x 3, mm) as .npy")
     cloud.set_defaults(run=cmd_pointcloud)
 
+    params = kinds.add_parser("params", help="compose the DVC pipeline's params.yaml from conf/, as `dvc exp run -S` "
+                                             "does (after editing conf/)")
+    params.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. encoder=dgcnn 'seeds=[0]'")
+    params.add_argument("--out", type=Path, default=Path("params.yaml"), help="default: params.yaml")
+    params.set_defaults(run=cmd_params)
+
     report = kinds.add_parser("report", help="summaries over finished runs")
     report_verbs = report.add_subparsers(dest="verb", required=True)
     curve = report_verbs.add_parser("curve", help="the learning curve: held-out FIT(F) against the number of "
@@ -235,6 +267,12 @@ def build_parser() -> argparse.ArgumentParser:
     curve.add_argument("folders", type=Path, nargs="+", help="one sweep folder per family (its runs' subfolders)")
     curve.add_argument("--out", type=Path, required=True, help="folder for learning_curve.json, .md and .png")
     curve.set_defaults(run=cmd_curve)
+    summary = report_verbs.add_parser("summary", help="one table over the domains of a pipeline's seeds runs, their "
+                                                      "metrics and plot data (DVC's report stage)")
+    summary.add_argument("runs", type=Path, help="the folder of the domains' runs (runs/<domain>/results.json)")
+    summary.add_argument("--params", type=Path, help="summarise only the domains this params.yaml lists")
+    summary.add_argument("--out", type=Path, required=True, help="folder for metrics.json, results.md and plots/")
+    summary.set_defaults(run=cmd_summary)
     return parser
 
 

@@ -99,10 +99,10 @@ class SeedsResult:
         return summarise([{"reconstruction": m} for m in per_seed])["reconstruction"]
 
 
-def ensure_dataset(data_cfg: Mapping[str, Any]) -> Path:
-    """The dataset folder; a synthetic one (the catalogue, or `count` parts of a `family`) is generated first
-    when it is missing."""
-    root = Path(data_cfg["dir"])
+def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path) -> Path:
+    """The dataset folder (a relative `dir` from the project root); a synthetic one (the catalogue, or `count`
+    parts of a `family`) is generated first when it is missing."""
+    root = project_root / data_cfg["dir"]
     if not (root / SPEC_FILE).is_file():
         generate = data_cfg.get("generate")
         if generate is None:
@@ -166,7 +166,7 @@ def run_domain(cfg: DictConfig) -> RunResult:
     ltv.set_backend(cfg.simulator)
     run_dir.mkdir(parents=True, exist_ok=True)
     L.seed_everything(cfg.seed, workers=True)
-    data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
+    data = prepare_domain(ensure_dataset(cfg.data, Path(cfg.paths.root)), cfg.data, cfg.domain)
     encoder, head, dynamics = build_components(cfg)
     write_text_atomically(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     names = {kind: cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "head", "model")}
@@ -184,9 +184,14 @@ def run_domain(cfg: DictConfig) -> RunResult:
         run = train_and_evaluate(cfg, data, PIPEModel(encoder, head, dynamics, *data_scales(data.splits["train"])),
                                  run_dir, resume, loggers)
         if tracking:
-            log_outputs(run, cfg.mlflow.registered_model or None)
+            log_outputs(run, registered_model_name(cfg.mlflow.registered_model, data.domain.name))
             run.mlflow_run_id = active.info.run_id
     return run
+
+
+def registered_model_name(pattern: str | None, domain: str) -> str | None:
+    """The model registry's name for a domain's model: the configured pattern with {domain} filled in."""
+    return pattern.replace("{domain}", domain) if pattern else None
 
 
 def seed_config(cfg: DictConfig, seed: int, out: Path) -> DictConfig:

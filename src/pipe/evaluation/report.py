@@ -97,29 +97,52 @@ def _common(arrays: list[np.ndarray]) -> np.ndarray:
     return np.stack([a[:n] for a in arrays])
 
 
-def plot_forces(parts, results: dict[str, MethodResult], dt: float, path: Path) -> None:
-    """Measured vs predicted force per test part: mean over trials with the min-max spread (up to the
-    shortest trial), PIPE's mean prediction with its calibrated band (its limits' mean over the trials), and
-    the baselines' means."""
-    fig, axes = plt.subplots(1, len(parts), figsize=(5 * len(parts), 3.6), squeeze=False)
-    for ax, part in zip(axes[0], parts):
+def force_curves(parts, results: dict[str, MethodResult], dt: float) -> dict[str, dict[str, np.ndarray]]:
+    """Per test part the curves of forces.png, up to its shortest trial: time_s, the measured force's mean over
+    the trials with its min and max, PIPE's mean prediction with its calibrated band (its limits' mean over
+    the trials) and every baseline's mean prediction."""
+    curves = {}
+    for part in parts:
         measured = _common([p.force for p in part.profiles])
         t = np.arange(measured.shape[1]) * dt
-        ax.fill_between(t, measured.min(0), measured.max(0), color="tab:blue", alpha=0.25, lw=0)
-        ax.plot(t, measured.mean(0), color="tab:blue", label="measured")
+        series = {"time_s": t, "measured": measured.mean(0), "measured_min": measured.min(0),
+                  "measured_max": measured.max(0)}
         for name, result in results.items():
-            pred = _common(result.forces[part.name])[:, : len(t)]
+            series[name] = _common(result.forces[part.name])[:, : len(t)].mean(0)
+            band = result.bands.get(part.name)
+            if band is not None:
+                series[f"{name}_lower"], series[f"{name}_upper"] = (
+                    _common(limits)[:, : len(t)].mean(0) for limits in band.calibrated())
+        curves[part.name] = series
+    return curves
+
+
+def write_force_curves(curves: dict[str, dict[str, np.ndarray]], path: Path) -> None:
+    """The force curves as a long CSV (part, series, time_s, force_N): `dvc plots` data."""
+    rows = [f"{part},{name},{t:.4f},{value:.6g}" for part, series in curves.items()
+            for name, values in series.items() if name != "time_s" for t, value in zip(series["time_s"], values)]
+    write_text_atomically(path, "\n".join(["part,series,time_s,force_N", *rows]) + "\n")
+
+
+def plot_forces(curves: dict[str, dict[str, np.ndarray]], fits: dict[str, float], path: Path) -> None:
+    """Measured vs predicted force per test part (`force_curves`), titled with PIPE's FIT(F) where `fits`
+    has it."""
+    fig, axes = plt.subplots(1, len(curves), figsize=(5 * len(curves), 3.6), squeeze=False)
+    for ax, (part, series) in zip(axes[0], curves.items()):
+        t = series["time_s"]
+        ax.fill_between(t, series["measured_min"], series["measured_max"], color="tab:blue", alpha=0.25, lw=0)
+        ax.plot(t, series["measured"], color="tab:blue", label="measured")
+        for name, values in series.items():
+            if name in ("time_s", "measured", "measured_min", "measured_max") or name.endswith(("_lower", "_upper")):
+                continue
             if name == "pipe":
-                band = result.bands.get(part.name)
-                if band is not None:
-                    lower, upper = (_common(limits)[:, : len(t)].mean(0) for limits in band.calibrated())
-                    ax.fill_between(t, lower, upper, color="k", alpha=0.15, lw=0,
-                                    label=f"PIPE {band.level:.0%} band (mean over trials)")
-                ax.plot(t, pred.mean(0), color="k", label="PIPE")
+                if "pipe_lower" in series:
+                    ax.fill_between(t, series["pipe_lower"], series["pipe_upper"], color="k", alpha=0.15, lw=0,
+                                    label="PIPE band (mean over trials)")
+                ax.plot(t, values, color="k", label="PIPE")
             else:
-                ax.plot(t, pred.mean(0), lw=0.8, ls="--", label=name)
-        ax.set_title(f"{part.name}: FIT(F) {results['pipe'].per_part[part.name]['fit_F']:.1f} %"
-                     if "pipe" in results else part.name)
+                ax.plot(t, values, lw=0.8, ls="--", label=name)
+        ax.set_title(f"{part}: FIT(F) {fits[part]:.1f} %" if part in fits else part)
         ax.set_xlabel("time [s]")
         ax.set_ylabel("F_z [N]")
     axes[0, -1].legend(fontsize=7)
@@ -193,19 +216,41 @@ def read_epoch_metrics(csv_path: Path) -> dict[str, list[tuple[int, float]]]:
     return series
 
 
-def plot_losses(run_dir: Path, path: Path) -> None:
-    """Loss curves of both stages from the CSV logs (paper, Fig. "losses")."""
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-    for ax, stage, keys in ((axes[0], "vae", ("vae/train_chamfer", "vae/val_chamfer", "vae/train_kl")),
-                            (axes[1], "head", ("head/train_loss", "head/val_loss"))):
+LOSS_PANELS = (("vae", "stage 1: VAE", ("vae/train_chamfer", "vae/val_chamfer", "vae/train_kl")),
+               ("head", "stage 2: head (MSE, N^2)", ("head/train_loss", "head/val_loss")))
+
+
+def epoch_losses(run_dir: Path) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Per stage, the loss curves of `LOSS_PANELS` from the CSV logs: epochs and the mean of each epoch's
+    logged values (a training loss is logged per step)."""
+    curves = {}
+    for stage, _, keys in LOSS_PANELS:
         series = read_epoch_metrics(run_dir / "logs" / stage / "metrics.csv")
+        curves[stage] = {}
         for key in keys:
             if key in series:
-                epochs, values = zip(*series[key])
-                ax.plot(epochs, values, label=key)
+                epochs, values = np.array(series[key]).T
+                unique = np.unique(epochs)
+                curves[stage][key] = (unique.astype(int), np.array([values[epochs == e].mean() for e in unique]))
+    return curves
+
+
+def write_losses(curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], path: Path) -> None:
+    """The loss curves as a long CSV (stage, series, epoch, loss): `dvc plots` data."""
+    rows = [f"{stage},{key},{epoch},{value:.6g}" for stage, series in curves.items()
+            for key, (epochs, values) in series.items() for epoch, value in zip(epochs, values)]
+    write_text_atomically(path, "\n".join(["stage,series,epoch,loss", *rows]) + "\n")
+
+
+def plot_losses(curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], path: Path) -> None:
+    """Loss curves of both stages (`epoch_losses`; paper, Fig. "losses")."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for ax, (stage, title, _) in zip(axes, LOSS_PANELS):
+        for key, (epochs, values) in curves[stage].items():
+            ax.plot(epochs, values, label=key)
         ax.set_yscale("log")
         ax.set_xlabel("epoch")
-        ax.set_title("stage 1: VAE" if stage == "vae" else "stage 2: head (MSE, N^2)")
+        ax.set_title(title)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
     fig.tight_layout()
@@ -215,14 +260,20 @@ def plot_losses(run_dir: Path, path: Path) -> None:
 
 
 def write_report(run, out: Path) -> list[Path]:
-    """results.json, results.md and the four figures of a finished run."""
+    """results.json, results.md, the four figures of a finished run and the data of two of them (forces.csv,
+    losses.csv)."""
     out.mkdir(parents=True, exist_ok=True)
     doc = results_document(run.domain_name, run.counts, run.results, run.reconstruction, run.seconds)
     files = {"results.json": json.dumps(doc, indent=2) + "\n", "results.md": results_markdown(doc)}
     for name, text in files.items():
         write_text_atomically(out / name, text)
-    plot_forces(run.test, run.results, run.dt, out / "forces.png")
+    curves = force_curves(run.test, run.results, run.dt)
+    write_force_curves(curves, out / "forces.csv")
+    fits = {part: m["fit_F"] for part, m in run.results["pipe"].per_part.items()} if "pipe" in run.results else {}
+    plot_forces(curves, fits, out / "forces.png")
     plot_theta(run.model, run.test, run.latents, run.index, out / "theta.png", run.logvars, run.card.band.settings)
     plot_clouds(run.model.encoder, run.test, out / "point_clouds.png")
-    plot_losses(run.run_dir, out / "losses.png")
+    losses = epoch_losses(run.run_dir)
+    write_losses(losses, out / "losses.csv")
+    plot_losses(losses, out / "losses.png")
     return sorted(out.iterdir())

@@ -1,0 +1,155 @@
+"""The DVC pipeline (dvc.yaml, README "DVC"): params.yaml is Hydra's composition of conf/pipeline.yaml, each
+training stage declares the parameters it reads, `train.py params=params.yaml` trains with the file's values,
+and in a real repository a second `dvc repro` is a no-op, one domain's change reruns that domain only and
+`dvc exp run -S encoder=dgcnn` trains another encoder and lists in `dvc exp show`."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from conftest import ROOT, compose_config
+from omegaconf import OmegaConf
+
+from pipe.errors import PipeError
+from pipe.params import COMMAND_KEYS, CONFIG_MODULE, PARAMS_FILE, PIPELINE_CONFIG, PIPELINE_KEYS, apply_params, compose_params
+
+GROUPS = {"data", "domain", "encoder", "head", "model", "trainer"}
+
+
+def dvc_yaml() -> dict:
+    return yaml.safe_load((ROOT / "dvc.yaml").read_text())
+
+
+def test_the_committed_params_yaml_is_the_composition_of_conf(tmp_path, monkeypatch):
+    """params.yaml is never kept by hand: it must equal what `pipe params` (and `dvc exp run`) compose."""
+    monkeypatch.delenv("PROJECT_ROOT", raising=False)
+    monkeypatch.delenv("PIPE_SIMULATOR", raising=False)
+    compose_params(tmp_path / PARAMS_FILE, [])
+    fresh = yaml.safe_load((tmp_path / PARAMS_FILE).read_text())
+    assert yaml.safe_load((ROOT / PARAMS_FILE).read_text()) == fresh, "params.yaml is stale: run `pipe params`"
+    assert fresh["domains"] == ["dsub", "pins", "conn"] and fresh["seeds"] == [0, 1, 2]
+    assert "domain" not in fresh and fresh["stages"]["vae"]["epochs"] == 500   # the paper's settings
+
+
+def test_dvc_composes_the_same_config_as_pipe_params():
+    from dvc.repo import Repo
+
+    hydra = Repo(str(ROOT)).config["hydra"]
+    assert hydra["enabled"] and hydra["config_module"] == CONFIG_MODULE and hydra["config_name"] == PIPELINE_CONFIG
+
+
+def test_each_training_stage_declares_every_parameter_it_reads():
+    train = dvc_yaml()["stages"]["train"]
+    params = train["do"]["params"]
+    keys = {p for p in params if isinstance(p, str)}
+    files = [next(iter(p)) for p in params if isinstance(p, dict)]
+    shared = set(yaml.safe_load((ROOT / PARAMS_FILE).read_text()))
+    assert keys == shared - set(COMMAND_KEYS) - set(PIPELINE_KEYS)
+    assert files == ["conf/domain/${item}.yaml"] and train["foreach"] == "${domains}"
+    assert "conf" not in train["do"]["deps"]    # a change in one domain's file must not retrain the others
+    assert "params=params.yaml domain=${item}" in train["do"]["cmd"]
+
+
+def write_params(path: Path, values: dict) -> Path:
+    path.write_text(yaml.safe_dump(values))
+    return path
+
+
+def test_params_replace_config_groups_whole_and_merge_the_other_sections(tmp_path):
+    cfg = compose_config(["domain=pins", "paths.output_dir=unused"])
+    dgcnn = OmegaConf.to_container(compose_config(["encoder=dgcnn", "paths.output_dir=unused"]).encoder)
+    path = write_params(tmp_path / "params.yaml", {
+        "encoder": dgcnn, "stages": {"vae": {"epochs": 7}}, "seeds": [3, 4], "domains": ["conn"],
+        "domain": {"name": "conn"}, "paths": {"root": "/elsewhere"}})
+    root = cfg.paths.root
+    apply_params(cfg, path, GROUPS, ["domain=pins", "hydra.run.dir=runs/pins", "params=params.yaml"])
+    assert OmegaConf.to_container(cfg.encoder) == dgcnn                           # pointnet's own keys are gone
+    assert cfg.stages.vae.epochs == 7 and cfg.stages.vae.lr == 1e-4 and cfg.stages.head.epochs == 100
+    assert list(cfg.seeds) == [3, 4]
+    assert cfg.domain.name == "pins" and cfg.paths.root == root   # from the command, not the file
+
+
+@pytest.mark.parametrize(("content", "overrides", "message"), [
+    (None, [], "params file does not exist"),
+    ("seeds: [0, 1\n", [], "not valid YAML"),
+    ("- a list\n", [], "does not hold a mapping"),
+    ("sedes: [0, 1]\n", [], "sections train.py does not know: ['sedes']"),
+    ("seeds: [0, 1]\n", ["encoder=dgcnn"], "the override(s) ['encoder=dgcnn'] would be ignored"),
+])
+def test_a_bad_params_file_or_override_is_refused_by_name(tmp_path, content, overrides, message):
+    path = tmp_path / "params.yaml"
+    if content is not None:
+        path.write_text(content)
+    cfg = compose_config(["paths.output_dir=unused"])
+    with pytest.raises(PipeError) as err:
+        apply_params(cfg, path, GROUPS, overrides)
+    assert message in str(err.value) and "params.yaml" in str(err.value)
+
+
+def test_pipe_params_names_a_bad_override(tmp_path, capsys):
+    from pipe.cli import main
+
+    assert main(["params", "encoder=nope", "--out", str(tmp_path / "params.yaml")]) == 2
+    assert "Could not find 'encoder/nope'" in capsys.readouterr().err
+    assert not (tmp_path / "params.yaml").exists()
+
+
+def shell(cwd: Path, *args: str, env: dict[str, str]) -> str:
+    result = subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=900, env=env)
+    assert result.returncode == 0, f"{' '.join(args)}:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    return result.stdout + result.stderr
+
+
+@pytest.mark.slow
+def test_the_pipeline_reruns_what_changed_and_runs_experiments(tmp_path):
+    """A copy of the project in a fresh git repository, at a smoke-sized profile over two domains."""
+    repo = tmp_path / "project"
+    repo.mkdir()
+    for name in ("dvc.yaml", "train.py", ".gitignore"):
+        shutil.copy(ROOT / name, repo / name)
+    for name in ("conf", "plugins", "src"):
+        shutil.copytree(ROOT / name, repo / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+           "OMP_NUM_THREADS": "1"}
+    env.pop("PROJECT_ROOT", None)
+    for args in (["git", "init", "-q"], ["git", "config", "user.email", "ci@example.org"],
+                 ["git", "config", "user.name", "ci"], ["dvc", "init", "-q"]):
+        shell(repo, *args, env=env)
+    shutil.copy(ROOT / ".dvc" / "config", repo / ".dvc" / "config")
+    shutil.copytree(ROOT / ".dvc" / "plots", repo / ".dvc" / "plots")
+    profile = ["experiment=smoke", "domains=[dsub,pins]", "seeds=[0,1]"]
+    shell(repo, "pipe", "params", *profile, env=env)
+    shell(repo, "git", "add", "-A", env=env)
+    shell(repo, "git", "commit", "-qm", "pipeline", env=env)
+
+    first = shell(repo, "dvc", "repro", env=env)
+    assert all(f"Running stage '{s}'" in first for s in ("generate", "check", "train@dsub", "train@pins", "report"))
+    metrics = json.loads((repo / "reports" / "metrics.json").read_text())
+    assert set(metrics) == {"dsub", "pins"} and "fit_F" in metrics["pins"]["test"]
+    assert "| pins | PointNetVAE | MDS2 | 2 | pipe |" in (repo / "reports" / "results.md").read_text()
+    assert (repo / "reports" / "plots" / "forces" / "dsub.csv").is_file()
+    shell(repo, "git", "add", "-A", env=env)
+    shell(repo, "git", "commit", "-qm", "results", env=env)
+
+    assert "Running stage" not in shell(repo, "dvc", "repro", env=env)          # a second repro is a no-op
+    pins = repo / "conf" / "domain" / "pins.yaml"
+    pins.write_text(pins.read_text().replace("val: [taper12, dowel8]", "val: [taper12]").replace(
+        "dowel12]", "dowel12, dowel8]"))                        # dowel8 moves from validation to training
+    status = shell(repo, "dvc", "status", env=env)
+    assert "train@pins" in status and "train@dsub" not in status and "generate" not in status
+
+    shell(repo, "git", "checkout", "--", "conf", env=env)
+    shell(repo, "dvc", "exp", "run", *(f"-S{o}" for o in profile), "-Sencoder=dgcnn", env=env)
+    assert "DGCNNVAE" in (repo / "runs" / "dsub" / "seed_0" / "config.yaml").read_text()
+    shown = json.loads(shell(repo, "dvc", "exp", "show", "--json", env=env))
+    experiments = [exp["revs"][0] for rev in shown for exp in rev.get("experiments") or []]
+    assert len(experiments) == 1
+    assert experiments[0]["data"]["params"]["params.yaml"]["data"]["encoder"]["_target_"].endswith("DGCNNVAE")
+    assert "fit_F" in experiments[0]["data"]["metrics"]["reports/metrics.json"]["data"]["dsub"]["test"]
