@@ -1,9 +1,12 @@
-"""Prediction for one mesh, in process with the model already loaded: the time of each step (sample the
-mesh, encode, Theta(p_z) and the force along the default ramp) and of `predict_with` as a whole; median of
---repeats. The model is built from the default config (untrained weights cost the same time as trained
-ones); the command's whole wall time, start-up included, is measured with `time python predict.py ...`.
+"""Prediction in process with the model already loaded: for one mesh the time of each step (sample the
+mesh, encode, Theta(p_z) and the force along the default ramp) and of `predict_with` as a whole; for a
+folder of meshes (--library) the throughput of one call per mesh against one batched call over all of them,
+side by side. Median of --repeats. The model is built from the default config (untrained weights cost the
+same time as trained ones); the command's whole wall time, start-up included, is measured with
+`time python predict.py ...`.
 
     python benchmarks/predict.py [--mesh ../shared/real-meshes/labit_positioning_pin_d5_20.stl] [--repeats 5]
+    python benchmarks/predict.py --library ../shared/real-meshes [--repeats 3]
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from pipe.model.card import ModelCard
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.uncertainty import force_band, theta_band
 from pipe.pipeline import build_components
-from pipe.predict import predict_with, sample_mesh
+from pipe.predict import mesh_files, predict_with, sample_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,6 +32,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", default=str(ROOT.parent / "shared/real-meshes/labit_positioning_pin_d5_20.stl"))
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--library", help="a folder of meshes: per-mesh calls against one batch")
     args = parser.parse_args()
     os.environ.setdefault("PROJECT_ROOT", str(ROOT))
     with initialize_config_module("pipe.conf", version_base="1.3"):
@@ -39,19 +43,23 @@ def main() -> None:
     card = ModelCard(domain="benchmark", points=int(train_cfg.data.points), cloud_seed=0,
                      rate_hz=float(train_cfg.data.rate_hz), parameter_names=tuple(dynamics.parameter_names),
                      train_parts=("none",), train_size_mm=(1.0, 100.0), depth_scale_mm=5.0, force_scale_n=10.0)
-    cloud, _ = sample_mesh(cfg, card)
+    if args.library:
+        library(model, card, cfg, mesh_files(args.library), args.repeats)
+        return
+    mesh = Path(args.mesh)
+    cloud, _ = sample_mesh(mesh, cfg, card)
     z, logvar = model.latent_distribution(torch.from_numpy(cloud.points)[None])
     depth = torch.linspace(0.0, 5.0, int(2.2 * card.rate_hz))[None]
     band = card.band.settings
     steps = {
-        "sample the mesh": lambda: sample_mesh(cfg, card),
+        "sample the mesh": lambda: sample_mesh(mesh, cfg, card),
         "encode": lambda: model.latent(torch.from_numpy(cloud.points)[None]),
         "Theta(p_z) on 201 depths": lambda: model.profile(z, torch.tensor([5.0]))(torch.linspace(0, 5, 201)[None]),
         "force along the ramp": lambda: model(z, depth, 1.0 / card.rate_hz),
         f"force band ({band.samples} latent draws)": lambda: force_band(model, z[0], logvar[0], depth,
                                                                       1.0 / card.rate_hz, band),
         "Theta band on 201 depths": lambda: theta_band(model, z[0], logvar[0], 5.0, torch.linspace(0, 5, 201), band),
-        "predict_with (all of it)": lambda: predict_with(model, card, cfg),
+        "predict_with (all of it)": lambda: predict_with(model, card, cfg, [mesh]),
     }
     print(f"mesh {Path(args.mesh).name}, {card.points} points, median of {args.repeats}")
     print("| step | time |")
@@ -59,6 +67,20 @@ def main() -> None:
     with torch.no_grad():
         for name, fn in steps.items():
             print(f"| {name} | {median_seconds(fn, args.repeats) * 1e3:.1f} ms |")
+
+
+def library(model: PIPEModel, card: ModelCard, cfg, meshes: list[Path], repeats: int) -> None:
+    """Throughput over a folder of meshes: `predict_with` once per mesh against once for all of them."""
+    with torch.no_grad():
+        one_by_one = median_seconds(lambda: [predict_with(model, card, cfg, [m]) for m in meshes], repeats)
+        batched = median_seconds(lambda: predict_with(model, card, cfg, meshes), repeats)
+        sampling = median_seconds(lambda: [sample_mesh(m, cfg, card) for m in meshes], repeats)
+    print(f"{len(meshes)} meshes, {card.points} points each, median of {repeats}")
+    print("| predict_with | time | meshes per second | ratio |")
+    print("| --- | --- | --- | --- |")
+    print(f"| once per mesh | {one_by_one:.2f} s | {len(meshes) / one_by_one:.1f} | 1.00x |")
+    print(f"| one batch | {batched:.2f} s | {len(meshes) / batched:.1f} | {one_by_one / batched:.2f}x |")
+    print(f"| (sampling the meshes alone) | {sampling:.2f} s | {len(meshes) / sampling:.1f} | |")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 # Set up pipe on a fresh Debian machine (idempotent, a few seconds when already done):
 #   - the system library open3d needs (libusb-1.0-0),
 #   - a virtual environment in .venv with torch 2.13.0 from the local CPU wheel (never a CUDA build),
-#   - pipe itself (editable) with its dependencies, the test tools and the STEP/IGES reader (extra cad).
+#   - pipe itself (editable) with its dependencies, the test tools, the STEP/IGES reader (extra cad),
+#     Hydra's SLURM launcher (extra slurm) and Optuna sweeper (extra search).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -20,7 +21,7 @@ if [ ! -f "$stamp" ]; then
   echo "setup: installing torch 2.13.0 (CPU) and pipe's dependencies into .venv"
   # torch first, pinned by constraints.txt: a bare torch requirement would pull a CUDA build.
   $PIP install -c constraints.txt torch
-  $PIP install -c constraints.txt -e ".[dev,cad]"
+  $PIP install -c constraints.txt -e ".[dev,cad,slurm,search]"
   rm -f .venv/.pipe-setup-*
   touch "$stamp"
 fi

@@ -18,7 +18,15 @@ from conftest import ROOT, compose_config
 from omegaconf import OmegaConf
 
 from pipe.errors import PipeError
-from pipe.params import COMMAND_KEYS, CONFIG_MODULE, PARAMS_FILE, PIPELINE_CONFIG, PIPELINE_KEYS, apply_params, compose_params
+from pipe.params import (
+    COMMAND_KEYS,
+    CONFIG_MODULE,
+    PARAMS_FILE,
+    PIPELINE_CONFIG,
+    PIPELINE_KEYS,
+    apply_params,
+    compose_params,
+)
 
 GROUPS = {"data", "domain", "encoder", "head", "model", "trainer"}
 

@@ -104,7 +104,8 @@ def test_pipe_installed_without_a_checkout_trains_with_its_builtin_plugins(tiny_
         shutil.copytree(ROOT / name, source / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
     pip("install", "--no-deps", "--no-build-isolation", "--target", str(site), str(source))
     for shipped in ("pipe/plugins/encoder/pointnet.py", "pipe/plugins/model/mds2.py", "pipe/conf/config.yaml",
-                    "pipe/conf/encoder/dgcnn.yaml", "hydra_plugins/pipe_searchpath/__init__.py"):
+                    "pipe/conf/encoder/dgcnn.yaml", "pipe/conf/hydra/launcher/slurm.yaml",
+                    "hydra_plugins/pipe_searchpath/__init__.py"):
         assert (site / shipped).is_file(), shipped
     work = tmp_path / "work"      # no checkout anywhere near: the installed package alone
     work.mkdir()

@@ -75,3 +75,62 @@ def test_predict_errors_are_clear(trained_run, real_meshes, tmp_path):
     wrong = run_predict(f"mesh={mesh}", "units=m", f"run={trained_run.mlflow_run_id}",
                         f"hydra.run.dir={tmp_path / 'z'}")
     assert wrong.returncode == 0 and "warning: the part is 1.848e+04 mm large" in " ".join(wrong.stdout.split())
+
+
+def predict_config(mesh: str):
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
+        return compose("predict", overrides=[f"mesh={mesh}", "run=unused"])
+
+
+def test_a_batch_of_meshes_predicts_what_each_mesh_alone_does(trained_run, real_meshes):
+    from pipe.predict import mesh_files, predict_with
+
+    names = ("labit_positioning_pin_d5_20.stl", "factory_round_peg_8mm_tight.obj", "labit_pin_pcb.stl")
+    meshes = [p for p in real_meshes if p.name in names]
+    cfg = predict_config("[" + ",".join(str(m) for m in meshes) + "]")
+    assert mesh_files(cfg.mesh) == meshes
+    batch = predict_with(trained_run.model, trained_run.card, cfg, meshes)
+    for mesh, together in zip(meshes, batch):
+        alone = predict_with(trained_run.model, trained_run.card, cfg, [mesh])[0]
+        assert together.mesh == mesh and together.notes == alone.notes
+        for field in ("force", "theta", "force_band", "theta_band"):
+            np.testing.assert_allclose(getattr(together, field), getattr(alone, field), rtol=1e-5, atol=1e-5)
+    assert not np.allclose(batch[0].force, batch[1].force)      # three parts, three predictions
+
+
+def test_mesh_files_reads_a_folder_a_list_or_a_file(tmp_path):
+    from pipe.errors import PipeError
+    from pipe.predict import mesh_files, output_names
+
+    for name in ("b.stl", "a.obj", "a.STL", "notes.txt"):
+        (tmp_path / name).write_text("")
+    assert [p.name for p in mesh_files(str(tmp_path))] == ["a.STL", "a.obj", "b.stl"]
+    assert output_names(mesh_files(str(tmp_path))) == ["a.STL", "a.obj", "b"]
+    assert mesh_files([str(tmp_path / "b.stl")]) == [tmp_path / "b.stl"] == mesh_files(str(tmp_path / "b.stl"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(PipeError, match="empty: folder holds no mesh files"):
+        mesh_files(str(tmp_path / "empty"))
+
+
+@pytest.mark.slow
+def test_predict_screens_a_folder_of_meshes(trained_run, real_meshes, tmp_path):
+    library = tmp_path / "library"
+    library.mkdir()
+    for name in ("labit_positioning_pin_d5_20.stl", "labit_pin_pcb.stl", "factory_round_peg_8mm_tight.obj"):
+        (library / name).symlink_to(next(p for p in real_meshes if p.name == name))
+    out = tmp_path / "out"
+    result = run_predict(f"mesh={library}", "run=models:/pipe-tiny/latest", f"hydra.run.dir={out}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = np.genfromtxt(out / "predictions.csv", delimiter=",", names=True, dtype=None, encoding=None)
+    assert list(rows["folder"]) == ["factory_round_peg_8mm_tight", "labit_pin_pcb", "labit_positioning_pin_d5_20"]
+    for row in rows:
+        force = np.genfromtxt(out / row["folder"] / "force.csv", delimiter=",", names=True)
+        assert row["peak_force_N"] == pytest.approx(force["F_z"].max(), rel=1e-4)
+        assert (out / row["folder"] / "prediction.png").is_file()
+
+    (library / "broken.stl").write_text("solid broken\nendsolid broken\n")
+    failed = run_predict(f"mesh={library}", "run=models:/pipe-tiny/latest", f"hydra.run.dir={tmp_path / 'out2'}")
+    assert failed.returncode == 2 and "broken.stl" in failed.stderr and "Traceback" not in failed.stderr
+    assert not (tmp_path / "out2" / "predictions.csv").exists()

@@ -104,5 +104,6 @@ def test_loss_curves_average_each_epochs_steps(tmp_path):
     assert list(epochs) == [0, 1] and list(values) == [2.0, 1.0]
     assert list(curves["vae"]["vae/val_chamfer"][1]) == [5.0, 4.0] and curves["head"] == {}
     write_losses(curves, tmp_path / "losses.csv")
-    assert rows(tmp_path / "losses.csv")[:2] == [{"stage": "vae", "series": "vae/train_chamfer", "epoch": "0", "loss": "2"},
-                                                 {"stage": "vae", "series": "vae/train_chamfer", "epoch": "1", "loss": "1"}]
+    assert rows(tmp_path / "losses.csv")[:2] == [
+        {"stage": "vae", "series": "vae/train_chamfer", "epoch": "0", "loss": "2"},
+        {"stage": "vae", "series": "vae/train_chamfer", "epoch": "1", "loss": "1"}]

@@ -21,7 +21,8 @@ register()   # installed plugins' configs join the search path, in editable inst
 
 
 @hydra.main(version_base="1.3", config_path=PIPE_CONFIG, config_name="config")
-def _train(cfg: DictConfig) -> None:
+def _train(cfg: DictConfig) -> float | None:
+    """One domain (or seeds) run; returns stage 2's best validation loss, a sweeper's objective."""
     from rich.table import Table
 
     from pipe.cli import console, fail
@@ -57,15 +58,17 @@ def _train(cfg: DictConfig) -> None:
         model = "<a seed's run id, in seed_<k>/mlflow_run_id>" if cfg.seeds is not None else result.mlflow_run_id
         console.print(f"MLflow run {result.mlflow_run_id} (`mlflow ui` from the project root); predict with: "
                       f"python predict.py mesh=<part.stl> run={model}")
+    return result.objective
 
 
 def job_config(cfg: DictConfig) -> None:
     """Complete the composed config in place: the run's folder (Hydra's, of this job), and with `params=`
-    the values of that parameter file (pipe.params)."""
+    the values of that parameter file (pipe.params); then set the job's threads (pipe.threads)."""
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import open_dict
 
     from pipe.params import apply_params
+    from pipe.threads import available_cores, job_threads, set_threads
 
     hydra_cfg = HydraConfig.get()
     with open_dict(cfg):
@@ -73,6 +76,9 @@ def job_config(cfg: DictConfig) -> None:
     if cfg.params is not None:
         groups = {name.split("/")[0] for name in hydra_cfg.runtime.choices if not name.startswith("hydra")}
         apply_params(cfg, Path(cfg.paths.root) / cfg.params, groups, list(hydra_cfg.overrides.task))
+    threads = job_threads(cfg.threads, hydra_cfg.launcher, available_cores())
+    if threads is not None:
+        set_threads(threads)
 
 
 @hydra.main(version_base="1.3", config_path=PIPE_CONFIG, config_name="predict")
@@ -81,23 +87,26 @@ def _predict(cfg: DictConfig) -> None:
 
     from pipe.cli import console, fail
     from pipe.errors import PipeError, debugging
-    from pipe.predict import predict, write_prediction
+    from pipe.predict import predict, write_predictions
 
     try:
-        prediction = predict(cfg)
+        predictions = predict(cfg)
     except PipeError as err:
         if debugging():
             raise
         sys.exit(fail(str(err)))
     out = Path(HydraConfig.get().runtime.output_dir)
-    write_prediction(prediction, out, Path(cfg.mesh), str(cfg.run))
-    for note in prediction.notes:
-        console.print(note)
-    peak = int(prediction.force.argmax())
-    lower, upper = prediction.force_band[:, peak]
-    console.print(f"peak force {prediction.force[peak]:.2f} N ({prediction.band.level:.0%} band {lower:.2f} to "
-                  f"{upper:.2f} N), final {prediction.force[-1]:.2f} N; theta.csv, theta.json, force.csv and "
-                  f"prediction.png in {out}")
+    write_predictions(predictions, out, str(cfg.run))
+    for prediction in predictions:
+        prefix = f"{prediction.mesh.name}: " if len(predictions) > 1 else ""
+        for note in prediction.notes:
+            console.print(prefix + note, markup=False)
+        peak = int(prediction.force.argmax())
+        lower, upper = prediction.force_band[:, peak]
+        console.print(f"{prefix}peak force {prediction.force[peak]:.2f} N ({prediction.band.level:.0%} band "
+                      f"{lower:.2f} to {upper:.2f} N), final {prediction.force[-1]:.2f} N", markup=False)
+    where = f"in {out}" if len(predictions) == 1 else f"per mesh in {out}/<mesh>/, one row per mesh in predictions.csv"
+    console.print(f"theta.csv, theta.json, force.csv and prediction.png {where}", markup=False)
 
 
 def train() -> None:

@@ -1,4 +1,5 @@
-"""The `pipe` command line: `pipe data generate|import|check|pointcloud`, `pipe params` and `pipe report curve|summary`."""
+"""The `pipe` command line: `pipe data generate|import|check|pointcloud`, `pipe params`, `pipe report
+curve|summary`."""
 
 from __future__ import annotations
 
@@ -151,8 +152,8 @@ def cmd_params(args: argparse.Namespace) -> int:
     from pipe.params import compose_params
 
     compose_params(args.out, args.overrides)
-    console.print(f"wrote {args.out} (conf/pipeline.yaml{' with ' + ' '.join(args.overrides) if args.overrides else ''})",
-                  markup=False)
+    given = f" with {' '.join(args.overrides)}" if args.overrides else ""
+    console.print(f"wrote {args.out} (conf/pipeline.yaml{given})", markup=False)
     return 0
 
 

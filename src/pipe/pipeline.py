@@ -71,6 +71,8 @@ class RunResult:
     seconds: dict[str, float] = field(default_factory=dict)
     mlflow_run_id: str | None = None
     logvars: torch.Tensor | None = None    # the latent codes' log-variances, rows as latents
+    objective: float | None = None         # stage 2's best monitored loss (validation, else training): a sweep's
+                                           # objective, never a test metric
 
     @property
     def pipe(self) -> MethodResult:
@@ -90,6 +92,12 @@ class SeedsResult:
     def seconds(self) -> dict[str, float]:
         """Each stage's wall time, mean over the seeds."""
         return {stage: float(np.mean([run.seconds[stage] for run in self.runs])) for stage in self.runs[0].seconds}
+
+    @property
+    def objective(self) -> float | None:
+        """The seeds' mean of stage 2's best monitored loss."""
+        values = [run.objective for run in self.runs]
+        return None if None in values else float(np.mean(values))
 
     @property
     def reconstruction(self) -> dict[str, Spread]:
@@ -172,6 +180,7 @@ def run_domain(cfg: DictConfig) -> RunResult:
     names = {kind: cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "head", "model")}
     tags = {"domain": data.domain.name, **names, "git_commit": git_commit(Path(cfg.paths.root)),
             "dataset": str(data.dataset_dir), "dataset_version": dataset_version(data.dataset_dir),
+            "torch_threads": str(torch.get_num_threads()),
             **dvc_dataset_tags(data.dataset_dir)}
     tracking = cfg.mlflow.enabled
     run_name = f"{data.domain.name} {names['encoder']} {names['model']}"
@@ -254,12 +263,13 @@ def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, 
                        loggers: list) -> RunResult:
     """Both training stages, then PIPE and the baselines on the test parts, metrics.json and the report."""
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
-    seconds = {"vae": fit_vae(cfg, model.encoder, train, val, run_dir, resume, loggers)}
+    seconds = {"vae": fit_vae(cfg, model.encoder, train, val, run_dir, resume, loggers).seconds}
 
     all_parts = train + val + test
     index = {p.name: i for i, p in enumerate(all_parts)}
     latents, logvars = model.latent_distribution(stack_clouds(all_parts))   # test clouds are only encoded
-    seconds["head"] = fit_head(cfg, model, latents, index, train, val, run_dir, resume, loggers)
+    head = fit_head(cfg, model, latents, index, train, val, run_dir, resume, loggers)
+    seconds["head"] = head.seconds
 
     start = time.perf_counter()
     dt = 1.0 / cfg.data.rate_hz
@@ -270,7 +280,7 @@ def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, 
     band = next(iter(results["pipe"].bands.values()))
     run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, latents, index,
                     test, dt, results, reconstruction, model_card(cfg, data, model.dynamics, band.offset), seconds,
-                    logvars=logvars)
+                    logvars=logvars, objective=head.best)
     write_text_atomically(run_dir / "metrics.json", json.dumps(
         {"test": run.pipe.domain, "baselines": {n: r.domain for n, r in results.items() if n != "pipe"},
          "per_part": run.pipe.per_part, "reconstruction": reconstruction, "seconds": seconds}, indent=2) + "\n")

@@ -1,11 +1,13 @@
-"""Prediction for a new part: load a trained model from MLflow, encode the part's mesh, and answer its
-parameter profiles Theta(p_z) and the force along a depth trajectory."""
+"""Prediction for new parts: load a trained model from MLflow, encode each part's mesh, and answer its
+parameter profiles Theta(p_z) and the force along a depth trajectory. Many meshes (a folder or a list, as
+when screening a CAD library) go through the model as one batch."""
 
 from __future__ import annotations
 
 import json
 import logging
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,8 +35,12 @@ log = logging.getLogger(__name__)
 SIZE_TOLERANCE = 10.0   # a part this many times smaller or larger than the training parts is suspicious
 
 
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf", ".3mf", ".step", ".stp", ".iges", ".igs")
+
+
 @dataclass
 class Prediction:
+    mesh: Path
     depth_grid: np.ndarray      # (G,) mm
     theta: np.ndarray           # (G, P) at depth_grid
     parameter_names: list[str]
@@ -116,54 +122,104 @@ def load_trajectory(path: Path, columns: DictConfig, rate: float) -> tuple[np.nd
     return profile.time, profile.depth
 
 
-def sample_mesh(cfg: DictConfig, card: ModelCard) -> tuple[PointCloud, list[str]]:
+def mesh_files(mesh: str | Path | Sequence[str]) -> list[Path]:
+    """The meshes `mesh=` names: one file, a folder (its mesh files, sorted), or a list of files."""
+    paths = [Path(m) for m in mesh] if isinstance(mesh, Sequence) and not isinstance(mesh, str) else [Path(mesh)]
+    if len(paths) == 1 and paths[0].is_dir():
+        found = sorted(p for p in paths[0].iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
+        if not found:
+            raise PipeError(f"folder holds no mesh files ({', '.join(MESH_SUFFIXES)})", paths[0])
+        return found
+    if not paths:
+        raise PipeError("mesh= names no mesh; give a file, a folder or a list [a.stl,b.stl]")
+    return paths
+
+
+def sample_mesh(path: Path, cfg: DictConfig, card: ModelCard) -> tuple[PointCloud, list[str]]:
     """The mesh's point cloud as in training, and notes on the unit it was read in and its size."""
-    cloud = cloud_from_mesh(cfg.mesh, cfg.units, card.points, seed=card.cloud_seed, axis=str(cfg.axis))
+    cloud = cloud_from_mesh(path, cfg.units, card.points, seed=card.cloud_seed, axis=str(cfg.axis))
     units = cloud.mesh.units
     notes = [f"mesh read in {units}" + (" (assumed from its size)" if cfg.units == "auto" else "")]
-    return cloud, notes + check_size(cloud.mesh.extent_mm, card, cfg.units, units, Path(cfg.mesh))
+    return cloud, notes + check_size(cloud.mesh.extent_mm, card, cfg.units, units, path)
 
 
-def predict(cfg: DictConfig) -> Prediction:
-    """Load the model `cfg.run` names, then `predict_with` it."""
+def predict(cfg: DictConfig) -> list[Prediction]:
+    """Load the model `cfg.run` names, then `predict_with` it for every mesh `cfg.mesh` names."""
+    meshes = mesh_files(cfg.mesh)
     model, card = load_model(cfg.run, cfg.mlflow.tracking_uri, Path(cfg.paths.root))
-    return predict_with(model, card, cfg)
+    return predict_with(model, card, cfg, meshes)
 
 
 @torch.no_grad()
-def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig) -> Prediction:
-    """A loaded model's prediction for `cfg.mesh`: sample the mesh, encode, Theta(p_z), simulate the force,
-    and draw both bands (`pipe.model.uncertainty`; the force band widened by the card's calibrated offset)."""
-    cloud, notes = sample_mesh(cfg, card)
-    z, logvar = model.latent_distribution(torch.from_numpy(cloud.points)[None])
+def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig, meshes: list[Path]) -> list[Prediction]:
+    """A loaded model's predictions for the meshes: sample each mesh, encode them as one batch, Theta(p_z) and
+    the force along one trajectory for all of them at once, then each part's two bands
+    (`pipe.model.uncertainty`; the force band widened by the card's calibrated offset). Every mesh is read
+    before anything is predicted: a broken one stops the batch naming its file."""
+    samples = [sample_mesh(path, cfg, card) for path in meshes]
+    z, logvar = model.latent_distribution(torch.from_numpy(np.stack([cloud.points for cloud, _ in samples])))
     rate = card.rate_hz
     if cfg.trajectory:
         time, depth = load_trajectory(Path(cfg.trajectory), cfg.trajectory_columns, rate)
     else:
         target = cfg.ramp.depth_mm or card.depth_scale_mm
         time, depth = ramp_and_hold(target, cfg.ramp.speed_mm_s, cfg.ramp.rest_s, cfg.ramp.hold_s, rate)
+    n = len(meshes)
     p = torch.as_tensor(depth, dtype=torch.float32)[None]
-    force = model(z, p, 1.0 / rate)[0].numpy()
+    forces = model(z, p.expand(n, -1), 1.0 / rate).numpy()
     depth_max = float(np.abs(depth).max())
     grid = torch.linspace(0.0, depth_max, 201)[None]
-    profile = model.profile(z, torch.tensor([depth_max]))
-    theta = profile(grid)[0].numpy()
+    profile = model.profile(z, torch.full((n,), depth_max))
+    thetas = profile(grid.expand(n, -1)).numpy()
     settings = card.band.settings
-    lower, upper = force_band(model, z[0], logvar[0], p, 1.0 / rate, settings)
-    force_limits = np.stack([lower[0].numpy() - card.band.offset_n, upper[0].numpy() + card.band.offset_n])
-    theta_limits = np.stack([t.numpy() for t in theta_band(model, z[0], logvar[0], depth_max, grid[0], settings)])
+    predictions = []
+    for i, (path, (_, notes)) in enumerate(zip(meshes, samples)):
+        lower, upper = force_band(model, z[i], logvar[i], p, 1.0 / rate, settings)
+        force_limits = np.stack([lower[0].numpy() - card.band.offset_n, upper[0].numpy() + card.band.offset_n])
+        theta_limits = np.stack([t.numpy() for t in theta_band(model, z[i], logvar[i], depth_max, grid[0], settings)])
+        predictions.append(Prediction(path, grid[0].numpy(), thetas[i], list(card.parameter_names), time, depth,
+                                      forces[i], local_models(profile, i), notes, card.band, force_limits,
+                                      theta_limits))
+    return predictions
+
+
+def local_models(profile: Any, row: int) -> dict[str, Any] | None:
+    """Row `row`'s local models in physical units, for heads made of them (gaussian); None otherwise."""
     raw = profile.raw
-    local = None
-    if all(hasattr(raw, k) for k in ("amplitude", "centre", "width")):   # local-model heads (gaussian)
-        scale = profile.scale[:, None]
-        local = {"amplitude": (raw.amplitude[0] * scale).tolist(), "centre_mm": raw.centre[0].tolist(),
-                 "width_mm": raw.width[0].tolist()}
-    return Prediction(grid[0].numpy(), theta, list(card.parameter_names), time, depth, force, local, notes,
-                      card.band, force_limits, theta_limits)
+    if not all(hasattr(raw, k) for k in ("amplitude", "centre", "width")):
+        return None
+    scale = profile.scale[:, None]
+    return {"amplitude": (raw.amplitude[row] * scale).tolist(), "centre_mm": raw.centre[row].tolist(),
+            "width_mm": raw.width[row].tolist()}
 
 
-def write_prediction(pred: Prediction, out: Path, mesh: Path, run: str) -> list[Path]:
+def output_names(meshes: list[Path]) -> list[str]:
+    """A folder name per mesh: its stem, or its file name where two meshes share a stem (a.stl, a.obj)."""
+    stems = [m.stem for m in meshes]
+    return [m.stem if stems.count(m.stem) == 1 else m.name for m in meshes]
+
+
+def write_predictions(predictions: list[Prediction], out: Path, run: str) -> list[Path]:
+    """One mesh: its files in `out`. Several: each mesh's files in out/<name>/, and predictions.csv, one row
+    per mesh (peak and final force with the band at the peak), for ranking a CAD library."""
+    if len(predictions) == 1:
+        return write_prediction(predictions[0], out, run)
+    written = []
+    rows = ["mesh,folder,peak_force_N,peak_lower_N,peak_upper_N,final_force_N,notes"]
+    for pred, name in zip(predictions, output_names([p.mesh for p in predictions])):
+        written += write_prediction(pred, out / name, run)
+        peak = int(pred.force.argmax())
+        notes = "; ".join(pred.notes).replace('"', "'")
+        rows.append(f'"{pred.mesh}",{name},{pred.force[peak]:.6g},{pred.force_band[0, peak]:.6g},'
+                    f'{pred.force_band[1, peak]:.6g},{pred.force[-1]:.6g},"{notes}"')
+    write_text_atomically(out / "predictions.csv", "\n".join(rows) + "\n")
+    return [*written, out / "predictions.csv"]
+
+
+def write_prediction(pred: Prediction, out: Path, run: str) -> list[Path]:
+    """One mesh's theta.csv, force.csv, theta.json and prediction.png in `out`."""
     out.mkdir(parents=True, exist_ok=True)
+    mesh = pred.mesh
     names = pred.parameter_names
     header = ",".join(["p_z", *names, *(f"{n}_lower" for n in names), *(f"{n}_upper" for n in names)])
     with atomic_path(out / "theta.csv") as temporary:

@@ -23,7 +23,7 @@ import torch
 import yaml
 from hydra.experimental.callback import Callback
 from lightning.pytorch.loggers import MLFlowLogger
-from mlflow.entities import Metric
+from mlflow.entities import Metric, Param
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
@@ -213,6 +213,14 @@ class MLflowSweepCallback(Callback):
             config, f"sweep {config.hydra.sweep.dir.rsplit('/', 1)[-1]}", {"sweep_dir": str(config.hydra.sweep.dir)})
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        results = Path(config.hydra.sweep.dir) / "optimization_results.yaml"   # a search's best trial (optuna)
+        if results.is_file():
+            best = yaml.safe_load(results.read_text()) or {}
+            if "best_params" in best:
+                MlflowClient().log_batch(self.run_id, params=[Param(f"best/{k}", str(v))
+                                                              for k, v in best["best_params"].items()],
+                                         metrics=[Metric("best_objective", float(best["best_value"]),
+                                                         int(time.time() * 1000), 0)])
         close_parent_run(self.run_id, self.enclosing)
 
 
@@ -237,6 +245,8 @@ def log_outputs(run, registered_model: str | None) -> None:
     mlflow.log_metrics({f"test/reconstruction/{k}": sum(m[k] for m in run.reconstruction.values())
                         / len(run.reconstruction) for k in next(iter(run.reconstruction.values()))})
     mlflow.log_metrics({f"time/{stage}_s": seconds for stage, seconds in run.seconds.items()})
+    if run.objective is not None:
+        mlflow.log_metric("objective", run.objective)   # what a hyperparameter search minimises
     mlflow.log_artifact(str(run.run_dir / "config.yaml"))
     mlflow.log_artifact(str(run.run_dir / "metrics.json"))
     mlflow.log_artifacts(str(run.run_dir / "report"), "report")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import lightning as L
 import torch
@@ -20,10 +21,14 @@ from pipe.training.stages import HeadStage, VAEStage
 from pipe.training.trainer import checkpoint_dir, make_trainer
 
 
+class StageFit(NamedTuple):
+    seconds: float         # wall time of the stage
+    best: float | None     # the monitored loss (validation, else training) where the best checkpoint was taken
+
+
 def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, val: DataLoader | None,
-              run_dir: Path, stage: str, resume: bool) -> float:
-    """Fit (when resuming, from the stage's last checkpoint if it has one), then load the best weights;
-    the seconds it took."""
+              run_dir: Path, stage: str, resume: bool) -> StageFit:
+    """Fit (when resuming, from the stage's last checkpoint if it has one), then load the best weights."""
     last = checkpoint_dir(run_dir, stage) / "last.ckpt"
     start = time.perf_counter()
     trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
@@ -32,11 +37,12 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
     best = trainer.checkpoint_callback.best_model_path
     if best:
         module.load_state_dict(torch.load(best, map_location="cpu", weights_only=True)["state_dict"])
-    return time.perf_counter() - start
+    score = trainer.checkpoint_callback.best_model_score
+    return StageFit(time.perf_counter() - start, float(score) if score is not None else None)
 
 
 def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val: list[PartData], run_dir: Path,
-            resume: bool, loggers: list[Logger]) -> float:
+            resume: bool, loggers: list[Logger]) -> StageFit:
     """Stage 1 (`cfg.stages.vae`): the encoder learns to reconstruct the training clouds."""
     stage = cfg.stages.vae
     trainer = make_trainer(cfg.trainer, run_dir, "vae", stage.epochs, bool(val), loggers, resume)
@@ -47,7 +53,7 @@ def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val:
 
 
 def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: dict[str, int], train: list[PartData],
-             val: list[PartData], run_dir: Path, resume: bool, loggers: list[Logger]) -> float:
+             val: list[PartData], run_dir: Path, resume: bool, loggers: list[Logger]) -> StageFit:
     """Stage 2 (`cfg.stages.head`): the encoder frozen, the head learns the training trials' force through
     the dynamic model; `latents` holds the parts' codes at the rows `index` gives."""
     stage = cfg.stages.head

@@ -1,0 +1,46 @@
+"""Threads per training process: parallel jobs share the machine's cores instead of each taking all of them.
+
+torch and numba start as many threads as there are cores; two such processes on the same cores slow each
+other far beyond 2x. Under Hydra's joblib launcher a job therefore takes its share of the cores, and
+`threads=<n>` sets any run's count. The count is part of a run's record (the MLflow tag torch_threads): it
+changes the order of float sums and so the trained model.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity, as a scheduler such as SLURM sets it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def parallel_jobs(launcher: Mapping[str, Any], cores: int) -> int:
+    """How many jobs a Hydra launcher runs at once: the joblib launcher's n_jobs (joblib's convention for
+    negative values: -1 all cores, -2 all but one), 1 for a launcher that runs jobs one after another."""
+    if "joblib" not in str(launcher.get("_target_", "")).lower():
+        return 1
+    jobs = int(launcher.get("n_jobs") or 1)
+    return max(1, cores + 1 + jobs if jobs < 0 else jobs)
+
+
+def job_threads(threads: int | None, launcher: Mapping[str, Any], cores: int) -> int | None:
+    """A job's thread count: `threads` when set, else its share of the cores when jobs run in parallel;
+    None (torch's and numba's own default) otherwise."""
+    if threads is not None:
+        return int(threads)
+    jobs = parallel_jobs(launcher, cores)
+    return max(1, cores // jobs) if jobs > 1 else None
+
+
+def set_threads(threads: int) -> None:
+    """torch's intra-op threads and numba's parallel kernels' threads (at most numba's pool, which
+    NUMBA_NUM_THREADS sizes at start-up)."""
+    import numba
+    import torch
+
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
