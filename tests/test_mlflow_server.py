@@ -67,11 +67,13 @@ def test_a_training_logs_to_a_tracking_server_and_its_model_reads_back(tiny_data
         assert any((tmp_path / "artifacts").rglob("MLmodel"))          # stored under the server's artifact root
         versions = client.search_model_versions("name='pipe-tiny'")
         assert [v.run_id for v in versions] == [run_id]
+        previous = os.environ["MLFLOW_TRACKING_URI"]     # set_tracking_uri sets the variable too: restore both
         mlflow.set_tracking_uri(url)
         try:
             model = mlflow.pytorch.load_model(f"runs:/{run_id}/model", map_location="cpu")
         finally:
-            mlflow.set_tracking_uri(os.environ["MLFLOW_TRACKING_URI"])
+            mlflow.set_tracking_uri(previous)
+            os.environ["MLFLOW_TRACKING_URI"] = previous
         assert type(model).__name__ == "PIPEModel" and list(model.dynamics.parameter_names) == ["a0", "a1", "a2", "b0"]
 
         mesh = tiny_data / "parts" / "dsub26" / "mesh.stl"
