@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -25,10 +26,10 @@ def _train(cfg: DictConfig) -> float | None:
     """One domain (or seeds) run; returns stage 2's best validation loss, a sweeper's objective."""
     from rich.table import Table
 
-    from pipe.cli import console, fail
+    from pipe.cli import console, fail, say
     from pipe.errors import PipeError, debugging
     from pipe.pipeline import results_rows, run_domain, run_seeds, spread_rows
-    from pipe.tracking import stop_on_signals
+    from pipe.tracking import stop_on_signals, stopping_signal
 
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # device banners and tips, twice
     stop_on_signals()
@@ -39,6 +40,13 @@ def _train(cfg: DictConfig) -> float | None:
         if debugging():
             raise
         sys.exit(fail(str(err)))
+    except (KeyboardInterrupt, SystemExit):   # Lightning ends a fit stopped by a signal with SystemExit
+        signum = stopping_signal()
+        if signum is None:
+            raise
+        say(f"stopped by {signal.Signals(signum).name}; continue with resume={cfg.resume or cfg.paths.output_dir}",
+            "error")
+        sys.exit(128 + signum)
     title = (f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
              f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
     if cfg.seeds is not None:
@@ -85,7 +93,7 @@ def job_config(cfg: DictConfig) -> None:
 def _predict(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from pipe.cli import console, fail
+    from pipe.cli import console, fail, say
     from pipe.errors import PipeError, debugging
     from pipe.predict import predict, write_predictions
 

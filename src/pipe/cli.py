@@ -18,7 +18,8 @@ console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
 
 def say(message: str, kind: str) -> None:
     """Print a problem as one wrapped paragraph on stderr."""
-    print(textwrap.fill(f"{kind}: {message}", width=100, break_long_words=False), file=sys.stderr)
+    print(textwrap.fill(f"{kind}: {message}", width=100, break_long_words=False,
+                        break_on_hyphens=False), file=sys.stderr)
 
 
 def fail(message: str) -> int:

@@ -115,15 +115,26 @@ _signalled: list[int] = []   # the signals that stopped this process, for the ru
 
 
 def _stop(signum: int, frame: object) -> None:
+    """Stop now by KeyboardInterrupt, except for a first SIGTERM inside a Lightning fit: Lightning's handler,
+    installed for the fit, has called this one after setting its flag, and the fit stops itself at the end
+    of the current step or epoch. Stopping there keeps the stage's checkpoint and loss log consistent (an
+    interrupt between an epoch's checkpoint and its loss row lost the row); a second signal stops now."""
+    deferred = signum == signal.SIGTERM and signum not in _signalled and signal.getsignal(signum) is not _stop
     _signalled.append(signum)
-    raise KeyboardInterrupt(signal.Signals(signum).name)
+    if not deferred:
+        raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 def stop_on_signals() -> None:
-    """Ctrl-C and SIGTERM (`kill`, a scheduler) stop a training by KeyboardInterrupt, and its MLflow runs end
-    KILLED, even where Lightning turns the interrupt into an exit of its own."""
+    """Ctrl-C and SIGTERM (`kill`, a scheduler) stop a training, and its MLflow runs end KILLED, even where
+    Lightning turns the stop into an exit of its own."""
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, _stop)
+
+
+def stopping_signal() -> int | None:
+    """The signal that stopped this process, if one did."""
+    return _signalled[0] if _signalled else None
 
 
 @contextmanager
