@@ -6,10 +6,18 @@ import os
 import shutil
 from pathlib import Path
 
-import pytest
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # One worker per core (pyproject's addopts): torch in each worker, and in every command its tests start,
+    # takes one thread, set before torch starts its pool; two workers with a torch thread per core each slow
+    # each other far beyond 2x. numba keeps its threads, so its parallel kernels still run on several
+    # threads in the tests (their short runs overlap little).
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ[name] = "1"
 
-from pipe.model import ltv
-from pipe.synthetic import generate_dataset
+import pytest  # noqa: E402
+
+from pipe.model import ltv  # noqa: E402
+from pipe.synthetic import generate_dataset  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL_MESHES = Path(os.environ.get("PIPE_REAL_MESHES", ROOT.parent / "shared" / "real-meshes"))

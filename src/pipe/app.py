@@ -93,7 +93,7 @@ def job_config(cfg: DictConfig) -> None:
 def _predict(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from pipe.cli import console, fail, say
+    from pipe.cli import console, fail
     from pipe.errors import PipeError, debugging
     from pipe.predict import predict, write_predictions
 
