@@ -107,3 +107,19 @@ def test_loss_curves_average_each_epochs_steps(tmp_path):
     assert rows(tmp_path / "losses.csv")[:2] == [
         {"stage": "vae", "series": "vae/train_chamfer", "epoch": "0", "loss": "2"},
         {"stage": "vae", "series": "vae/train_chamfer", "epoch": "1", "loss": "1"}]
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, "params file does not exist"),
+    ("domains: [conn\n", "not valid YAML"),
+    ("- conn\n", "does not hold a YAML mapping"),
+    ("seeds: [0, 1]\n", "names no domains"),
+])
+def test_a_bad_params_file_is_named_and_nothing_is_written(tmp_path, capsys, content, message):
+    runs, out, params = tmp_path / "runs", tmp_path / "reports", tmp_path / "params.yaml"
+    fake_domain(runs, "conn", {"pipe": (70.0, 1.0)})
+    if content is not None:
+        params.write_text(content)
+    assert main(["report", "summary", str(runs), "--params", str(params), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.replace("\n", " ")
+    assert f"{params}: " in err and message in err and "Traceback" not in err and not out.exists()

@@ -133,15 +133,12 @@ def cmd_curve(args: argparse.Namespace) -> int:
 
 
 def cmd_summary(args: argparse.Namespace) -> int:
-    import yaml
-
+    from pipe.errors import read_yaml_mapping
     from pipe.evaluation.summary import write_summary
 
     domains = None
     if args.params is not None:
-        if not args.params.is_file():
-            return fail(f"{args.params}: params file does not exist")
-        domains = list((yaml.safe_load(args.params.read_text()) or {}).get("domains") or [])
+        domains = list(read_yaml_mapping(args.params, missing="params file does not exist").get("domains") or [])
         if not domains:
             return fail(f"{args.params}: names no domains (a list under `domains`)")
     written = write_summary(args.runs, args.out, domains)

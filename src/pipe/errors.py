@@ -34,6 +34,24 @@ class DatasetError(PipeError):
     """A dataset folder, its dataset.yaml, a mesh or a trial CSV breaks the dataset contract."""
 
 
+def read_yaml_mapping(path: str | Path, error: type[PipeError] = PipeError, missing: str = "file does not exist",
+                      not_mapping: str = "does not hold a YAML mapping") -> dict[str, Any]:
+    """The mapping a user's YAML file holds; a missing file, invalid YAML or any other document (an empty
+    file too) raises `error` naming the file and the problem."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise error(missing, path)
+    try:
+        document = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise error(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
+    if not isinstance(document, dict):
+        raise error(not_mapping, path)
+    return document
+
+
 def options_dataclass(cls: type[T], values: Mapping[str, Any] | None, section: str) -> T:
     """The settings dataclass `cls` built from a config section's options; an unknown option is refused,
     naming the section and the options it knows."""

@@ -12,10 +12,9 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
-import yaml
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from pipe.errors import PipeError
+from pipe.errors import PipeError, read_yaml_mapping
 
 CONFIG_MODULE = "pipe.conf"
 PIPELINE_CONFIG = "pipeline"          # conf/pipeline.yaml, as `.dvc/config` names it for DVC
@@ -47,14 +46,8 @@ def apply_params(cfg: DictConfig, path: Path, groups: set[str], overrides: list[
     if extra:
         raise PipeError(f"params={path} runs the configuration in that file; the override(s) {extra} would be "
                         "ignored. Set them in the file (dvc exp run -S ..., or pipe params ...) or drop params=")
-    if not path.is_file():
-        raise PipeError("params file does not exist; write it with `pipe params` (or `dvc exp run -S ...`)", path)
-    try:
-        values = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise PipeError(f"params file is not valid YAML: {exc}", path) from None
-    if not isinstance(values, dict):
-        raise PipeError("params file does not hold a mapping of parameters", path)
+    values = read_yaml_mapping(path, missing="params file does not exist; write it with `pipe params` (or `dvc exp "
+                               "run -S ...`)", not_mapping="params file does not hold a mapping of parameters")
     unknown = sorted(set(values) - set(cfg) - set(PIPELINE_KEYS))
     if unknown:
         raise PipeError(f"params file has sections train.py does not know: {unknown}; rewrite it with `pipe params`",

@@ -9,7 +9,7 @@ from typing import Any
 import trimesh
 import yaml
 
-from pipe.errors import DatasetError
+from pipe.errors import DatasetError, read_yaml_mapping
 
 SPEC_FILE = "dataset.yaml"
 DEFAULT_COLUMNS = {"time": "t", "position": "p_z", "force": "F_z"}
@@ -95,15 +95,9 @@ def load_spec(root: str | Path) -> DatasetSpec:
     path = root / SPEC_FILE
     if not root.is_dir():
         raise DatasetError("dataset folder does not exist", root)
-    if not path.is_file():
-        raise DatasetError("file is missing: every dataset folder declares its name, units and columns in it "
-                           "(see the README's 'Dataset layout')", path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise DatasetError(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
-    if not isinstance(doc, dict):
-        raise DatasetError("must be a YAML mapping with at least a 'name'", path)
+    doc = read_yaml_mapping(path, DatasetError, missing="file is missing: every dataset folder declares its name, "
+                            "units and columns in it (see the README's 'Dataset layout')",
+                            not_mapping="must be a YAML mapping with at least a 'name'")
     unknown = set(doc) - _KNOWN_KEYS
     if unknown:
         raise DatasetError(f"unknown keys {sorted(unknown)}; allowed: {sorted(_KNOWN_KEYS)}", path)
