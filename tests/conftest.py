@@ -7,10 +7,9 @@ import shutil
 from pathlib import Path
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
-    # One worker per core (pyproject's addopts): torch in each worker, and in every command its tests start,
-    # takes one thread, set before torch starts its pool; two workers with a torch thread per core each slow
-    # each other far beyond 2x. numba keeps its threads, so its parallel kernels still run on several
-    # threads in the tests (their short runs overlap little).
+    # One worker per core (pyproject's addopts): torch and numba in each worker, and in every command its
+    # tests start, take one thread, set before they start their pools; two workers with a thread per core
+    # each slow each other far beyond 2x. tests/test_kernel_threads.py runs the compiled kernels on two.
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         os.environ[name] = "1"
 

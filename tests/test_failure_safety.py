@@ -149,3 +149,36 @@ def test_pipe_debug_shows_the_full_traceback(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("PIPE_DEBUG", "1")
     with pytest.raises(DatasetError, match="mesh file does not exist"):
         main(args)
+
+
+def test_sigterm_after_the_fits_last_check_still_stops_the_training(tmp_path, monkeypatch):
+    """A SIGTERM that arrives after Lightning's loop last looked at it (here in on_train_end) must not be lost:
+    the stage saves its end state and stops instead of going on to the next stage."""
+    from lightning.pytorch.callbacks import Callback
+    from omegaconf import OmegaConf
+
+    from pipe import tracking
+    from pipe.training.fit import fit_stage
+    from pipe.training.trainer import make_trainer
+
+    class SigtermAtTrainEnd(Callback):
+        def on_train_end(self, trainer, module):
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(tracking, "_signalled", [])
+    handlers = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    cfg = OmegaConf.create({"checkpoint_every": 1, "progress_bar": False, "accelerator": "cpu", "devices": 1,
+                            "deterministic": True, "fast_dev_run": False})
+    trainer = make_trainer(cfg, tmp_path, "vae", epochs=3, has_val=False)
+    trainer.callbacks.append(SigtermAtTrainEnd())
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(8, 1)), batch_size=4)
+    try:
+        tracking.stop_on_signals()
+        with pytest.raises(KeyboardInterrupt):
+            fit_stage(trainer, Regression(), data, None, tmp_path, "vae", resume=False)
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+    assert tracking.stopping_signal() == signal.SIGTERM
+    # the end state (3 epochs done), saved before stopping
+    assert torch.load(tmp_path / "checkpoints/vae/last.ckpt", weights_only=False)["epoch"] == 3

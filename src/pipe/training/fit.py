@@ -34,6 +34,8 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
     trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
     if not trainer.fast_dev_run:
         trainer.save_checkpoint(last)   # the end state, whatever checkpoint_every
+    if trainer.received_sigterm:        # after the fit's last check of it: stop here, with the end state saved
+        raise KeyboardInterrupt("SIGTERM")
     best = trainer.checkpoint_callback.best_model_path
     if best:
         module.load_state_dict(torch.load(best, map_location="cpu", weights_only=True)["state_dict"])
