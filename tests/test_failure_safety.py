@@ -16,9 +16,15 @@ import lightning as L
 import pytest
 import torch
 from conftest import ROOT, TINY_DOMAIN
+from lightning.pytorch.callbacks import Callback, Checkpoint
 from mlflow.tracking import MlflowClient
+from omegaconf import OmegaConf
+from torch.utils.data import DataLoader, TensorDataset
 
+from pipe import tracking
 from pipe.files import atomic_path, write_text_atomically
+from pipe.training.fit import fit_stage
+from pipe.training.trainer import make_trainer
 
 
 def train(*args: str) -> list[str]:
@@ -92,38 +98,58 @@ class Regression(L.LightningModule):
         return torch.optim.SGD(self.parameters(), lr=0.1)
 
 
-def test_sigterm_after_an_epochs_checkpoint_keeps_its_loss_row(tmp_path, monkeypatch):
+@pytest.fixture
+def stop_on_signals(monkeypatch):
+    """train.py's signal handling in this process, with no signal recorded yet; the handlers restored after."""
+    monkeypatch.setattr(tracking, "_signalled", [])
+    handlers = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    tracking.stop_on_signals()
+    yield
+    for signum, handler in handlers.items():
+        signal.signal(signum, handler)
+
+
+def regression_fit(run_dir: Path, epochs: int, callback: Callback) -> tuple[L.Trainer, DataLoader]:
+    """A stage-1 Trainer (`last` checkpoint every epoch) with `callback`, and two batches of ones."""
+    cfg = OmegaConf.create({"checkpoint_every": 1, "progress_bar": False, "accelerator": "cpu", "devices": 1,
+                            "deterministic": True, "fast_dev_run": False})
+    trainer = make_trainer(cfg, run_dir, "vae", epochs=epochs, has_val=False)
+    trainer.callbacks.append(callback)
+    return trainer, DataLoader(TensorDataset(torch.ones(8, 1)), batch_size=4)
+
+
+def test_sigterm_after_an_epochs_checkpoint_keeps_its_loss_row(tmp_path, stop_on_signals):
     """The regression behind a flaky resume test: SIGTERM arriving after an epoch's `last` checkpoint and
     before Lightning logs that epoch's loss lost the row, so the resumed log skipped an epoch. The fit now
     stops at the end of the epoch: the checkpoint's epoch is in the log."""
-    from lightning.pytorch.callbacks import Checkpoint
-    from omegaconf import OmegaConf
-
-    from pipe import tracking
-    from pipe.training.trainer import make_trainer
 
     class SigtermAfterCheckpoint(Checkpoint):   # a Checkpoint: Lightning runs it after the `last` one
         def on_train_epoch_end(self, trainer, module):
             if trainer.current_epoch == 2:
                 os.kill(os.getpid(), signal.SIGTERM)
 
-    monkeypatch.setattr(tracking, "_signalled", [])
-    handlers = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
-    cfg = OmegaConf.create({"checkpoint_every": 1, "progress_bar": False, "accelerator": "cpu", "devices": 1,
-                            "deterministic": True, "fast_dev_run": False})
-    trainer = make_trainer(cfg, tmp_path, "vae", epochs=10, has_val=False)
-    trainer.callbacks.append(SigtermAfterCheckpoint())
-    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(8, 1)), batch_size=4)
-    try:
-        tracking.stop_on_signals()
-        with pytest.raises((SystemExit, KeyboardInterrupt)):
-            trainer.fit(Regression(), data)
-    finally:
-        for signum, handler in handlers.items():
-            signal.signal(signum, handler)
+    trainer, data = regression_fit(tmp_path, 10, SigtermAfterCheckpoint())
+    with pytest.raises((SystemExit, KeyboardInterrupt)):
+        trainer.fit(Regression(), data)
     assert tracking.stopping_signal() == signal.SIGTERM
     assert torch.load(tmp_path / "checkpoints/vae/last.ckpt", weights_only=False)["epoch"] == 2
     assert [int(row["epoch"]) for row in loss_rows(tmp_path, "vae")] == [0, 1, 2]
+
+
+def test_sigterm_after_the_fits_last_check_still_stops_the_training(tmp_path, stop_on_signals):
+    """A SIGTERM that arrives after Lightning's loop last looked at it (here in on_train_end) must not be lost:
+    the stage saves its end state and stops instead of going on to the next stage."""
+
+    class SigtermAtTrainEnd(Callback):
+        def on_train_end(self, trainer, module):
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    trainer, data = regression_fit(tmp_path, 3, SigtermAtTrainEnd())
+    with pytest.raises(KeyboardInterrupt):
+        fit_stage(trainer, Regression(), data, None, tmp_path, "vae", resume=False)
+    assert tracking.stopping_signal() == signal.SIGTERM
+    # the end state (3 epochs done), saved before stopping
+    assert torch.load(tmp_path / "checkpoints/vae/last.ckpt", weights_only=False)["epoch"] == 3
 
 
 def test_atomic_writes_leave_the_old_file_when_writing_fails(tmp_path):
@@ -150,35 +176,3 @@ def test_pipe_debug_shows_the_full_traceback(tmp_path, monkeypatch, capsys):
     with pytest.raises(DatasetError, match="mesh file does not exist"):
         main(args)
 
-
-def test_sigterm_after_the_fits_last_check_still_stops_the_training(tmp_path, monkeypatch):
-    """A SIGTERM that arrives after Lightning's loop last looked at it (here in on_train_end) must not be lost:
-    the stage saves its end state and stops instead of going on to the next stage."""
-    from lightning.pytorch.callbacks import Callback
-    from omegaconf import OmegaConf
-
-    from pipe import tracking
-    from pipe.training.fit import fit_stage
-    from pipe.training.trainer import make_trainer
-
-    class SigtermAtTrainEnd(Callback):
-        def on_train_end(self, trainer, module):
-            os.kill(os.getpid(), signal.SIGTERM)
-
-    monkeypatch.setattr(tracking, "_signalled", [])
-    handlers = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
-    cfg = OmegaConf.create({"checkpoint_every": 1, "progress_bar": False, "accelerator": "cpu", "devices": 1,
-                            "deterministic": True, "fast_dev_run": False})
-    trainer = make_trainer(cfg, tmp_path, "vae", epochs=3, has_val=False)
-    trainer.callbacks.append(SigtermAtTrainEnd())
-    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(8, 1)), batch_size=4)
-    try:
-        tracking.stop_on_signals()
-        with pytest.raises(KeyboardInterrupt):
-            fit_stage(trainer, Regression(), data, None, tmp_path, "vae", resume=False)
-    finally:
-        for signum, handler in handlers.items():
-            signal.signal(signum, handler)
-    assert tracking.stopping_signal() == signal.SIGTERM
-    # the end state (3 epochs done), saved before stopping
-    assert torch.load(tmp_path / "checkpoints/vae/last.ckpt", weights_only=False)["epoch"] == 3
