@@ -15,10 +15,9 @@ from pathlib import Path
 import lightning as L
 import pytest
 import torch
-from conftest import ROOT, TINY_DOMAIN
+from conftest import ROOT, TINY_DOMAIN, compose_config
 from lightning.pytorch.callbacks import Callback, Checkpoint
 from mlflow.tracking import MlflowClient
-from omegaconf import OmegaConf
 from torch.utils.data import DataLoader, TensorDataset
 
 from pipe import tracking
@@ -111,8 +110,8 @@ def stop_on_signals(monkeypatch):
 
 def regression_fit(run_dir: Path, epochs: int, callback: Callback) -> tuple[L.Trainer, DataLoader]:
     """A stage-1 Trainer (`last` checkpoint every epoch) with `callback`, and two batches of ones."""
-    cfg = OmegaConf.create({"checkpoint_every": 1, "progress_bar": False, "accelerator": "cpu", "devices": 1,
-                            "deterministic": True, "fast_dev_run": False})
+    cfg = compose_config(["trainer.checkpoint_every=1", "trainer.progress_bar=false", "trainer.accelerator=cpu",
+                          "paths.output_dir=unused"]).trainer
     trainer = make_trainer(cfg, run_dir, "vae", epochs=epochs, has_val=False)
     trainer.callbacks.append(callback)
     return trainer, DataLoader(TensorDataset(torch.ones(8, 1)), batch_size=4)

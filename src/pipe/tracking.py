@@ -23,6 +23,7 @@ import torch
 import yaml
 from hydra.experimental.callback import Callback
 from lightning.pytorch.loggers import MLFlowLogger
+from lightning.pytorch.utilities import rank_zero_only
 from mlflow.entities import Metric, Param
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
@@ -107,6 +108,7 @@ class StageLogger(MLFlowLogger):
         os.environ.setdefault("MLFLOW_ASYNC_LOGGING_BUFFERING_SECONDS", "5")
         super().__init__(run_id=run_id, tracking_uri=tracking_uri, synchronous=False)
 
+    @rank_zero_only    # the other processes of a distributed fit hold no MLflow client
     def finalize(self, status: str = "success") -> None:
         self.experiment._tracking_client.store.flush_async_logging()
 

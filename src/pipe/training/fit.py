@@ -3,6 +3,7 @@ the dynamic model on the training trials; the validation parts select each stage
 
 from __future__ import annotations
 
+import csv
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -18,7 +19,7 @@ from pipe.data.prepared import PartData
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 from pipe.training.stages import HeadStage, VAEStage
-from pipe.training.trainer import checkpoint_dir, make_trainer
+from pipe.training.trainer import checkpoint_dir, make_trainer, per_process_batch
 
 
 class StageFit(NamedTuple):
@@ -30,17 +31,28 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
               run_dir: Path, stage: str, resume: bool) -> StageFit:
     """Fit (when resuming, from the stage's last checkpoint if it has one), then load the best weights."""
     last = checkpoint_dir(run_dir, stage) / "last.ckpt"
+    threads = torch.get_num_threads()   # a distributed fit's launcher lowers this process's share
     start = time.perf_counter()
-    trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
-    if not trainer.fast_dev_run:
-        trainer.save_checkpoint(last)   # the end state, whatever checkpoint_every
-    if trainer.received_sigterm:        # after the fit's last check of it: stop here, with the end state saved
+    try:
+        trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
+    finally:
+        torch.set_num_threads(threads)
+    if trainer.received_sigterm:        # after the fit's last check of it: stop here, the end state is saved
         raise KeyboardInterrupt("SIGTERM")
     best = trainer.checkpoint_callback.best_model_path
     if best:
         module.load_state_dict(torch.load(best, map_location="cpu", weights_only=True)["state_dict"])
     score = trainer.checkpoint_callback.best_model_score
+    if score is None and best:          # a fit in started processes passes back the best path, not its score
+        score = logged_minimum(run_dir, stage, trainer.checkpoint_callback.monitor)
     return StageFit(time.perf_counter() - start, float(score) if score is not None else None)
+
+
+def logged_minimum(run_dir: Path, stage: str, column: str) -> float | None:
+    """The lowest value of a column of the stage's loss log (logs/<stage>/metrics.csv), None without one."""
+    with open(run_dir / "logs" / stage / "metrics.csv", newline="") as handle:
+        values = [float(row[column]) for row in csv.DictReader(handle) if row.get(column)]
+    return min(values, default=None)
 
 
 def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val: list[PartData], run_dir: Path,
@@ -49,9 +61,9 @@ def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val:
     stage = cfg.stages.vae
     trainer = make_trainer(cfg.trainer, run_dir, "vae", stage.epochs, bool(val), loggers, resume)
     module = VAEStage(encoder, lr=stage.lr, kl_weight=stage.kl_weight, feature_dtype=stage.feature_dtype)
-    return fit_stage(trainer, module,
-                     cloud_loader(train, stage.batch_size, True, cfg.seed),
-                     cloud_loader(val, stage.batch_size, False, cfg.seed) if val else None, run_dir, "vae", resume)
+    batch = per_process_batch(stage.batch_size, trainer)
+    return fit_stage(trainer, module, cloud_loader(train, batch, True, cfg.seed),
+                     cloud_loader(val, batch, False, cfg.seed) if val else None, run_dir, "vae", resume)
 
 
 def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: dict[str, int], train: list[PartData],
@@ -60,7 +72,7 @@ def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: di
     the dynamic model; `latents` holds the parts' codes at the rows `index` gives."""
     stage = cfg.stages.head
     trainer = make_trainer(cfg.trainer, run_dir, "head", stage.epochs, bool(val), loggers, resume)
+    batch = per_process_batch(stage.batch_size, trainer)
     return fit_stage(trainer, HeadStage(model, latents, lr=stage.lr),
-                     trial_loader(train, index, stage.batch_size, True, cfg.seed),
-                     trial_loader(val, index, stage.batch_size, False, cfg.seed) if val else None,
-                     run_dir, "head", resume)
+                     trial_loader(train, index, batch, True, cfg.seed),
+                     trial_loader(val, index, batch, False, cfg.seed) if val else None, run_dir, "head", resume)

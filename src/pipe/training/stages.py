@@ -49,9 +49,9 @@ class VAEStage(L.LightningModule):
         check_finite(loss, f"{split} loss", self, "stage 1 (VAE)", "stages.vae.lr")
         size = len(clouds)
         self.log_dict({f"vae/{split}_loss": loss, f"vae/{split}_chamfer": rec, f"vae/{split}_kl": kl},
-                      batch_size=size, on_epoch=True, on_step=False, prog_bar=split == "val")
+                      batch_size=size, on_epoch=True, on_step=False, prog_bar=split == "val", sync_dist=True)
         if split == "val":
-            self.log("vae/val_nn_distance_mm", distance.mean(), batch_size=size)
+            self.log("vae/val_nn_distance_mm", distance.mean(), batch_size=size, sync_dist=True)
         return loss
 
     def training_step(self, clouds: torch.Tensor, batch_idx: int) -> torch.Tensor:
@@ -81,7 +81,7 @@ class HeadStage(L.LightningModule):
         loss = self.model.loss(self.latents[batch.part], batch)
         check_finite(loss, f"{split} loss", self, "stage 2 (head)", "stages.head.lr")
         self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False,
-                 prog_bar=split == "val")
+                 prog_bar=split == "val", sync_dist=True)   # with trainer=ddp: the mean over the processes
         return loss
 
     def training_step(self, batch: TrialBatch, batch_idx: int) -> torch.Tensor:

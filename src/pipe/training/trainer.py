@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 
 import lightning as L
-from lightning.pytorch.callbacks import ModelCheckpoint
+import torch
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, Logger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from omegaconf import DictConfig
 
+from pipe.errors import PipeError
+from pipe.model import ltv
 from pipe.training.progress import RateProgressBar
 
 
@@ -39,27 +43,82 @@ def checkpoint_dir(run_dir: Path, stage: str) -> Path:
     return run_dir / "checkpoints" / stage
 
 
+def monitored(stage: str, has_val: bool) -> str:
+    """The loss that chooses a stage's best checkpoint: validation, else training (logged by the stage)."""
+    return f"{stage}/val_loss" if has_val else f"{stage}/train_loss"
+
+
+class EndState(Callback):
+    """Writes last.ckpt when the fit ends, whatever `checkpoint_every`: in the process that trained (with
+    `trainer=ddp` a started one; the run's own process gets back the weights, not the optimiser and loop
+    state resume needs)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not trainer.fast_dev_run:
+            trainer.save_checkpoint(self.path)
+
+
+class ProcessSettings(Callback):
+    """The run's simulator and, in the processes a distributed fit starts, numba's threads: a started process
+    imports pipe afresh, and Lightning gives its torch an equal share of the cores but numba all of them."""
+
+    def __init__(self, simulator: str) -> None:
+        self.simulator = simulator
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        ltv.set_backend(self.simulator)
+        if trainer.world_size > 1:
+            import numba
+
+            numba.set_num_threads(min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+
+
+def per_process_batch(batch_size: int, trainer: L.Trainer) -> int:
+    """The batch each process loads so that one optimiser step still sees `batch_size` samples (DDP averages
+    the processes' gradients)."""
+    return max(1, math.ceil(batch_size / trainer.world_size))
+
+
+def _check_accelerator(cfg: DictConfig) -> None:
+    """Settings this machine cannot run, named before Lightning fails on them further in."""
+    on_gpu = str(cfg.accelerator) in ("gpu", "cuda") or (cfg.accelerator == "auto" and torch.cuda.is_available())
+    if str(cfg.accelerator) in ("gpu", "cuda") and not torch.cuda.is_available():
+        raise PipeError(f"trainer.accelerator={cfg.accelerator} (trainer=gpu) needs a CUDA GPU, and torch "
+                        f"{torch.__version__} sees none here; train on the CPU with the default trainer")
+    if cfg.sync_batchnorm and not on_gpu:
+        raise PipeError("trainer.sync_batchnorm=true needs GPUs (torch's SyncBatchNorm runs on GPUs only); "
+                        "leave it false on the CPU")
+
+
 def make_trainer(cfg: DictConfig, run_dir: Path, stage: str, epochs: int, has_val: bool,
                  loggers: list[Logger] = (), resume: bool = False) -> L.Trainer:
     """A Trainer with two checkpoints in checkpoints/<stage>/:
 
     - best.ckpt: the weights only, written when the monitored loss (validation, else training) improves;
-    - last.ckpt: everything resume needs, every `cfg.checkpoint_every` epochs (`fit_stage` adds the end).
+    - last.ckpt: everything resume needs, every `cfg.checkpoint_every` epochs and at the end of the fit.
     `trainer.checkpoint_callback` is the first of them, the best.
     """
-    monitor = f"{stage}/val_loss" if has_val else f"{stage}/train_loss"   # logged by the stage's module
+    _check_accelerator(cfg)
     folder = checkpoint_dir(run_dir, stage)
-    best = ModelCheckpoint(dirpath=folder, filename="best", monitor=monitor, mode="min", save_weights_only=True,
-                           enable_version_counter=False)
+    best = ModelCheckpoint(dirpath=folder, filename="best", monitor=monitored(stage, has_val), mode="min",
+                           save_weights_only=True, enable_version_counter=False)
     last = ModelCheckpoint(dirpath=folder, filename="last", every_n_epochs=cfg.checkpoint_every,
                            enable_version_counter=False)
-    callbacks = [best, last]
+    callbacks = [best, last, EndState(folder / "last.ckpt"), ProcessSettings(ltv.get_backend())]
     if cfg.progress_bar:
         callbacks.append(RateProgressBar())
+    if "spawn" in str(cfg.strategy):
+        # the default (file descriptors) fails to start the processes here: "bad value(s) in fds_to_keep"
+        torch.multiprocessing.set_sharing_strategy("file_system")
     return L.Trainer(
         max_epochs=epochs,
         accelerator=cfg.accelerator,
         devices=cfg.devices,
+        strategy=cfg.strategy,
+        sync_batchnorm=cfg.sync_batchnorm,
         deterministic=cfg.deterministic,
         callbacks=callbacks,
         logger=[(ResumedCSVLogger if resume else CSVLogger)(run_dir / "logs", name=stage, version=""), *loggers],
