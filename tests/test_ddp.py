@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import pytest
@@ -31,6 +32,26 @@ def test_the_ddp_trainer_composes_to_two_cpu_processes():
     gpu = compose_config(["trainer=gpu"])
     assert (gpu.trainer.accelerator, gpu.stages.vae.feature_dtype, gpu.trainer.deterministic) == \
         ("gpu", "bfloat16", "warn")
+
+
+def test_a_distributed_fit_gives_its_processes_a_share_of_the_cores_and_restores_this_ones(tmp_path, monkeypatch):
+    from pipe.training import trainer as trainers
+
+    for name in trainers.THREAD_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(trainers, "available_cores", lambda: 8)
+    cfg = compose_config(["trainer=ddp", "paths.output_dir=unused"]).trainer
+    trainer = trainers.make_trainer(cfg, tmp_path, "vae", epochs=1, has_val=False)
+    threads = torch.get_num_threads()
+    with trainers.process_threads(trainer):
+        assert [os.environ[name] for name in trainers.THREAD_VARIABLES] == ["4", "4"]   # 8 cores, 2 processes
+        torch.set_num_threads(1)                                                       # as Lightning's launcher does
+    assert not any(name in os.environ for name in trainers.THREAD_VARIABLES)
+    assert torch.get_num_threads() == threads
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "3")                                       # the user's choice is kept
+    with trainers.process_threads(trainer):
+        assert os.environ["NUMBA_NUM_THREADS"] == "3"
+    assert trainers.per_process_batch(10, trainer) == 5 and trainers.per_process_batch(5, trainer) == 3
 
 
 @pytest.mark.slow

@@ -19,7 +19,13 @@ from pipe.data.prepared import PartData
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 from pipe.training.stages import HeadStage, VAEStage
-from pipe.training.trainer import checkpoint_dir, make_trainer, per_process_batch
+from pipe.training.trainer import (
+    checkpoint_dir,
+    make_trainer,
+    per_process_batch,
+    process_threads,
+    stop_started_processes,
+)
 
 
 class StageFit(NamedTuple):
@@ -31,12 +37,13 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
               run_dir: Path, stage: str, resume: bool) -> StageFit:
     """Fit (when resuming, from the stage's last checkpoint if it has one), then load the best weights."""
     last = checkpoint_dir(run_dir, stage) / "last.ckpt"
-    threads = torch.get_num_threads()   # a distributed fit's launcher lowers this process's share
     start = time.perf_counter()
-    try:
-        trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
-    finally:
-        torch.set_num_threads(threads)
+    with process_threads(trainer):
+        try:
+            trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
+        except BaseException:
+            stop_started_processes(trainer)
+            raise
     if trainer.received_sigterm:        # after the fit's last check of it: stop here, the end state is saved
         raise KeyboardInterrupt("SIGTERM")
     best = trainer.checkpoint_callback.best_model_path
