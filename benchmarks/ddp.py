@@ -49,6 +49,9 @@ def main() -> None:
     print("| case | stage | one process: s per epoch | trainer=ddp: s per epoch | ratio | trainer=ddp: fixed cost |")
     print("| --- | --- | --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as tmp:
+        for trainer in ("default", "ddp"):   # fills numba's cache (a new checkout compiles the kernels once)
+            stage_seconds(["domain=dsub", "stages.vae.epochs=1", "stages.head.epochs=1", f"trainer={trainer}"],
+                          Path(tmp) / f"warm_{trainer}")
         for k, (name, overrides) in enumerate(CASES.items()):
             runs = {}
             for trainer in ("default", "ddp"):

@@ -151,6 +151,26 @@ def test_sigterm_after_the_fits_last_check_still_stops_the_training(tmp_path, st
     assert torch.load(tmp_path / "checkpoints/vae/last.ckpt", weights_only=False)["epoch"] == 3
 
 
+def test_a_resumed_stage_logs_the_epochs_after_its_checkpoint_once(tmp_path):
+    """A crash or a kill (as `trainer=ddp` stops its processes) after a stage logged epochs its last checkpoint
+    does not hold: the resumed fit trains them again, and the loss log keeps their new rows only."""
+
+    trainer, data = regression_fit(tmp_path, 3, Callback())
+    fit_stage(trainer, Regression(), data, None, tmp_path, "vae", resume=False)        # checkpoint: 3 epochs done
+    log_file = tmp_path / "logs/vae/metrics.csv"
+    stale = [row for row in loss_rows(tmp_path, "vae") if row["epoch"] == "2"][0]
+    with log_file.open("a", newline="") as handle:                                   # epochs 3 and 4, then a kill
+        writer = csv.DictWriter(handle, list(stale))
+        writer.writerows([{**stale, "epoch": str(epoch), "vae/train_loss": "-1"} for epoch in (3, 4)])
+    cfg = compose_config(["trainer.checkpoint_every=1", "trainer.progress_bar=false", "trainer.accelerator=cpu",
+                          "paths.output_dir=unused"]).trainer
+    resumed = make_trainer(cfg, tmp_path, "vae", epochs=5, has_val=False, resume=True)
+    fit_stage(resumed, Regression(), data, None, tmp_path, "vae", resume=True)
+    rows = loss_rows(tmp_path, "vae")
+    assert [int(row["epoch"]) for row in rows] == [0, 1, 2, 3, 4]
+    assert all(float(row["vae/train_loss"]) >= 0 for row in rows)                     # the stale rows are gone
+
+
 def test_atomic_writes_leave_the_old_file_when_writing_fails(tmp_path):
     target = tmp_path / "metrics.json"
     write_text_atomically(target, "old")

@@ -45,6 +45,11 @@ def get_backend() -> str:
     return _backend
 
 
+def compiled_available() -> bool:
+    """Whether the compiled kernels load here (numba installed)."""
+    return _compiled() is not None
+
+
 
 @cache
 def _compiled() -> ModuleType | None:

@@ -21,6 +21,8 @@ from pipe.model.vae import PointCloudVAE
 from pipe.training.stages import HeadStage, VAEStage
 from pipe.training.trainer import (
     checkpoint_dir,
+    forget_epochs_after,
+    loss_log,
     make_trainer,
     per_process_batch,
     process_threads,
@@ -37,10 +39,13 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
               run_dir: Path, stage: str, resume: bool) -> StageFit:
     """Fit (when resuming, from the stage's last checkpoint if it has one), then load the best weights."""
     last = checkpoint_dir(run_dir, stage) / "last.ckpt"
+    resume_from = last if resume and last.is_file() else None
+    if resume_from:
+        forget_epochs_after(run_dir, stage, resume_from)
     start = time.perf_counter()
     with process_threads(trainer):
         try:
-            trainer.fit(module, train, val, ckpt_path=str(last) if resume and last.is_file() else None)
+            trainer.fit(module, train, val, ckpt_path=str(resume_from) if resume_from else None)
         except BaseException:
             stop_started_processes(trainer)
             raise
@@ -57,7 +62,7 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
 
 def logged_minimum(run_dir: Path, stage: str, column: str) -> float | None:
     """The lowest value of a column of the stage's loss log (logs/<stage>/metrics.csv), None without one."""
-    with open(run_dir / "logs" / stage / "metrics.csv", newline="") as handle:
+    with open(loss_log(run_dir, stage), newline="") as handle:
         values = [float(row[column]) for row in csv.DictReader(handle) if row.get(column)]
     return min(values, default=None)
 

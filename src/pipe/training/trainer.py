@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
-import signal
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -19,6 +18,7 @@ from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from omegaconf import DictConfig
 
 from pipe.errors import PipeError
+from pipe.files import write_text_atomically
 from pipe.model import ltv
 from pipe.threads import available_cores
 from pipe.training.progress import RateProgressBar
@@ -45,6 +45,30 @@ class ResumedCSVLogger(CSVLogger):
         return self._experiment
 
 
+def loss_log(run_dir: Path, stage: str) -> Path:
+    return run_dir / "logs" / stage / "metrics.csv"
+
+
+def forget_epochs_after(run_dir: Path, stage: str, checkpoint: Path) -> None:
+    """Before a stage resumes from `checkpoint`: the rows its loss log holds of epochs the checkpoint does not
+    (logged after it, before a crash or a kill), which the resumed fit trains and logs again, are removed. The
+    epochs it holds are its fit loop's processed ones (its `epoch` field counts differently at an epoch's end
+    and at the fit's)."""
+    log_file = loss_log(run_dir, stage)
+    if not log_file.is_file():
+        return
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    done = state["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"]   # epochs it will not train again
+    with open(log_file, newline="") as handle:
+        reader = csv.DictReader(handle)
+        columns, rows = reader.fieldnames or [], [row for row in reader if int(row["epoch"]) < done]
+    text = io.StringIO()
+    writer = csv.DictWriter(text, columns, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text_atomically(log_file, text.getvalue())
+
+
 def checkpoint_dir(run_dir: Path, stage: str) -> Path:
     return run_dir / "checkpoints" / stage
 
@@ -68,13 +92,18 @@ class EndState(Callback):
 
 
 class SimulatorChoice(Callback):
-    """The run's simulator (`simulator=`) in the processes a distributed fit starts, which import pipe afresh."""
+    """The run's simulator (`simulator=`) in the processes a distributed fit starts, which import pipe afresh.
+    There "auto" takes the compiled kernels wherever they load: a process's share of a batch can fall below
+    auto's size threshold, which is meant for a single trajectory (predict.py), and the torch loop made a
+    DDP epoch of 100 pins 4x slower than one process's."""
 
     def __init__(self, simulator: str) -> None:
         self.simulator = simulator
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        ltv.set_backend(self.simulator)
+        distributed = trainer.world_size > 1
+        auto_compiled = self.simulator == "auto" and distributed and ltv.compiled_available()
+        ltv.set_backend("compiled" if auto_compiled else self.simulator)
 
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")
@@ -103,16 +132,13 @@ def process_threads(trainer: L.Trainer) -> Iterator[None]:
                 os.environ[name] = value
 
 
-def stop_started_processes(trainer: L.Trainer, grace: float = 60.0) -> None:
-    """Ends the processes a distributed fit started, when this one stops first (Ctrl-C, SIGTERM, an error):
+def stop_started_processes(trainer: L.Trainer) -> None:
+    """Kills the processes a distributed fit started, when this one stops first (Ctrl-C, SIGTERM, an error):
     Lightning's spawn launcher leaves them training, and this process would wait for them at its exit. They
-    get SIGTERM (Lightning stops them at the end of the step), and SIGKILL after `grace` seconds."""
-    started = [p for p in getattr(trainer.strategy.launcher, "procs", []) if p.is_alive()]
-    for process in started:
-        os.kill(process.pid, signal.SIGTERM)
-    deadline = time.monotonic() + grace
-    for process in started:
-        process.join(max(0.0, deadline - time.monotonic()))
+    are killed, not asked to stop: Lightning's SIGTERM handling broadcasts from inside the signal handler, and
+    two processes stopped at once deadlocked in it here. The stage resumes from its last checkpoint (written
+    atomically), as after a crash."""
+    for process in getattr(trainer.strategy.launcher, "procs", []):
         if process.is_alive():
             process.kill()
             process.join()
