@@ -89,6 +89,14 @@ def test_ddp_on_two_processes_trains_like_one_and_only_rank_zero_logs(tiny_data,
     assert (tmp_path / "two" / "report").is_dir()
 
 
+@pytest.mark.slow
+def test_a_diverging_ddp_training_stops_with_the_message_not_a_traceback(tiny_data, tmp_path):
+    """The NaN check runs in the started processes; their error comes back as the same PipeError."""
+    with pytest.raises(PipeError, match=r"stage 1 \(VAE\): the .* became NaN or infinite") as stopped:
+        run_domain(smoke_config(tiny_data, tmp_path, "trainer=ddp", "stages.vae.lr=1e30", "mlflow.enabled=false"))
+    assert "Traceback" not in str(stopped.value)
+
+
 def test_sync_batchnorm_on_the_cpu_is_refused_clearly(tiny_data, tmp_path):
     with pytest.raises(PipeError, match="sync_batchnorm=true needs GPUs"):
         run_domain(smoke_config(tiny_data, tmp_path, "trainer=ddp", "trainer.sync_batchnorm=true",

@@ -50,7 +50,6 @@ def compiled_available() -> bool:
     return _compiled() is not None
 
 
-
 @cache
 def _compiled() -> ModuleType | None:
     """The numba kernels, imported (and compiled from numba's cache) on first use; None without numba."""

@@ -12,6 +12,7 @@ import lightning as L
 import torch
 from lightning.pytorch.loggers import Logger
 from omegaconf import DictConfig
+from torch.multiprocessing.spawn import ProcessRaisedException
 from torch.utils.data import DataLoader
 
 from pipe.data.batches import cloud_loader, trial_loader
@@ -26,6 +27,7 @@ from pipe.training.trainer import (
     make_trainer,
     per_process_batch,
     process_threads,
+    started_process_error,
     stop_started_processes,
 )
 
@@ -46,6 +48,9 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
     with process_threads(trainer):
         try:
             trainer.fit(module, train, val, ckpt_path=str(resume_from) if resume_from else None)
+        except ProcessRaisedException as error:      # raised in a process the fit started (trainer=ddp)
+            stop_started_processes(trainer)
+            raise started_process_error(error) from None
         except BaseException:
             stop_started_processes(trainer)
             raise

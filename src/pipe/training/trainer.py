@@ -6,6 +6,7 @@ import csv
 import io
 import math
 import os
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -16,6 +17,7 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, Logger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from omegaconf import DictConfig
+from torch.multiprocessing.spawn import ProcessRaisedException
 
 from pipe.errors import PipeError
 from pipe.files import write_text_atomically
@@ -71,11 +73,6 @@ def forget_epochs_after(run_dir: Path, stage: str, checkpoint: Path) -> None:
 
 def checkpoint_dir(run_dir: Path, stage: str) -> Path:
     return run_dir / "checkpoints" / stage
-
-
-def monitored(stage: str, has_val: bool) -> str:
-    """The loss that chooses a stage's best checkpoint: validation, else training (logged by the stage)."""
-    return f"{stage}/val_loss" if has_val else f"{stage}/train_loss"
 
 
 class EndState(Callback):
@@ -144,6 +141,16 @@ def stop_started_processes(trainer: L.Trainer) -> None:
             process.join()
 
 
+def started_process_error(error: ProcessRaisedException) -> BaseException:
+    """A user's error raised in a process a distributed fit started (a loss that became NaN, ...) as a PipeError
+    of this process, with its message, instead of the traceback torch passes back; other errors unchanged."""
+    lines = str(error).strip().splitlines()
+    last = max((i for i, line in enumerate(lines) if re.match(r"pipe\.errors\.\w+: ", line)), default=None)
+    if last is None:
+        return error
+    return PipeError("\n".join(lines[last:]).split(": ", 1)[1])
+
+
 def per_process_batch(batch_size: int, trainer: L.Trainer) -> int:
     """The batch each process loads so that one optimiser step still sees `batch_size` samples (DDP averages
     the processes' gradients)."""
@@ -170,9 +177,10 @@ def make_trainer(cfg: DictConfig, run_dir: Path, stage: str, epochs: int, has_va
     `trainer.checkpoint_callback` is the first of them, the best.
     """
     _check_accelerator(cfg)
+    monitor = f"{stage}/val_loss" if has_val else f"{stage}/train_loss"   # logged by the stage's module
     folder = checkpoint_dir(run_dir, stage)
-    best = ModelCheckpoint(dirpath=folder, filename="best", monitor=monitored(stage, has_val), mode="min",
-                           save_weights_only=True, enable_version_counter=False)
+    best = ModelCheckpoint(dirpath=folder, filename="best", monitor=monitor, mode="min", save_weights_only=True,
+                           enable_version_counter=False)
     last = ModelCheckpoint(dirpath=folder, filename="last", every_n_epochs=cfg.checkpoint_every,
                            enable_version_counter=False)
     callbacks = [best, last, EndState(folder / "last.ckpt"), SimulatorChoice(ltv.get_backend())]
