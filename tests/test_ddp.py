@@ -18,7 +18,7 @@ from pipe.training.fit import logged_minimum
 TOLERANCE = 0.02   # relative: DDP's losses against one process's (measured: within 0.3 %, 2 smoke epochs)
 
 
-def loss_log(run_dir: Path, stage: str) -> dict[str, list[float]]:
+def logged_losses(run_dir: Path, stage: str) -> dict[str, list[float]]:
     """Each logged column of a stage's metrics.csv, epoch by epoch."""
     with open(run_dir / "logs" / stage / "metrics.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
@@ -65,7 +65,7 @@ def test_ddp_on_two_processes_trains_like_one_and_only_rank_zero_logs(tiny_data,
     one = run_domain(smoke_config(tiny_data, tmp_path / "one"))
     two = run_domain(smoke_config(tiny_data, tmp_path / "two", "trainer=ddp"))
     for stage in ("vae", "head"):
-        single, distributed = loss_log(tmp_path / "one", stage), loss_log(tmp_path / "two", stage)
+        single, distributed = logged_losses(tmp_path / "one", stage), logged_losses(tmp_path / "two", stage)
         assert set(single) == set(distributed)
         for column, values in single.items():
             assert len(distributed[column]) == len(values) == 2          # one row per epoch: rank 0 alone writes
