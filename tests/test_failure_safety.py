@@ -171,6 +171,26 @@ def test_a_resumed_stage_logs_the_epochs_after_its_checkpoint_once(tmp_path):
     assert all(float(row["vae/train_loss"]) >= 0 for row in rows)                     # the stale rows are gone
 
 
+def test_a_moved_run_folder_resumes_from_its_own_best_checkpoint(tmp_path):
+    """Lightning stores the best checkpoint's absolute path in `last.ckpt` and, in another folder, restores the
+    path but not its score: a run folder moved before `resume=` loaded the weights from the old place (here
+    gone: FileNotFoundError). The resumed stage now loads its own folder's best weights and reads the best
+    score from its own loss log."""
+    trainer, data = regression_fit(tmp_path / "before", 3, Callback())
+    module = Regression()
+    fitted = fit_stage(trainer, module, data, None, tmp_path / "before", "vae", resume=False)
+    (tmp_path / "before").rename(tmp_path / "after")
+    cfg = compose_config(["trainer.checkpoint_every=1", "trainer.progress_bar=false", "trainer.accelerator=cpu",
+                          "paths.output_dir=unused"]).trainer
+    resumed_module = Regression()
+    resumed = make_trainer(cfg, tmp_path / "after", "vae", epochs=3, has_val=False, resume=True)
+    refitted = fit_stage(resumed, resumed_module, data, None, tmp_path / "after", "vae", resume=True)
+    assert refitted.best == pytest.approx(fitted.best)
+    best = torch.load(tmp_path / "after/checkpoints/vae/best.ckpt", weights_only=True)["state_dict"]
+    for name, value in resumed_module.state_dict().items():
+        torch.testing.assert_close(value, best[name])
+
+
 def test_atomic_writes_leave_the_old_file_when_writing_fails(tmp_path):
     target = tmp_path / "metrics.json"
     write_text_atomically(target, "old")

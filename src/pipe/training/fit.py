@@ -56,12 +56,15 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
             raise
     if trainer.received_sigterm:        # after the fit's last check of it: stop here, the end state is saved
         raise KeyboardInterrupt("SIGTERM")
-    best = trainer.checkpoint_callback.best_model_path
-    if best:
+    # The best checkpoint of this run folder: the callback's path is absolute, so a run folder moved between
+    # the fit and `resume=` would name the old place (and its score is not restored there).
+    best = checkpoint_dir(run_dir, stage) / "best.ckpt"
+    taken = bool(trainer.checkpoint_callback.best_model_path) and best.is_file()
+    if taken:
         module.load_state_dict(torch.load(best, map_location="cpu", weights_only=True)["state_dict"])
     score = trainer.checkpoint_callback.best_model_score
-    if score is None and best:          # a fit in started processes passes back the best path, not its score
-        score = logged_minimum(run_dir, stage, trainer.checkpoint_callback.monitor)
+    if score is None and taken and loss_log(run_dir, stage).is_file():   # a fit in started processes, or a
+        score = logged_minimum(run_dir, stage, trainer.checkpoint_callback.monitor)   # moved folder: from the log
     return StageFit(time.perf_counter() - start, float(score) if score is not None else None)
 
 
