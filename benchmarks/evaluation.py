@@ -1,9 +1,10 @@
 """Wall time and results of each evaluated method, on the trained model of an earlier run (its checkpoints
 are copied to a temporary folder and resumed, so training is skipped and the run folder is not touched).
 
-Each method is fitted and scored on its own, in the order of `evaluation.baselines`; the identification
-cache is shared as in train.py (gpr identifies the training parts, the oracles the test parts). Run it
-alone: a second torch process on 2 cores distorts it.
+First every method's system identifications are fitted at once, as the evaluation does (the oracles'
+starts on the test parts, gpr's on the training parts, in `evaluation.identification.workers` processes);
+then each method is fitted and scored on its own, in the order of `evaluation.baselines`, with those fits.
+Run it alone: a second torch process on 2 cores distorts it.
 
     python benchmarks/evaluation.py runs/conn/seed_0 [evaluation.identification.ridge=0 ...]
 """
@@ -28,10 +29,16 @@ def main(run: str, overrides: list[str]) -> None:
     from omegaconf import OmegaConf
 
     import pipe.pipeline as pipeline
+    from pipe.evaluation.identification import identify_all
+    from pipe.evaluation.methods import METHODS
 
     evaluate, record = pipeline.evaluate_methods, {}
 
     def one_at_a_time(ctx, test, names):
+        start = time.perf_counter()         # every method's identifications at once, as the evaluation starts
+        methods = [METHODS[name]() for name in names]
+        identify_all(ctx, [r for m in methods if not m.unavailable(ctx, test) for r in m.identifications(ctx, test)])
+        record["identification (all methods' starts)"] = {"seconds": round(time.perf_counter() - start, 2)}
         results = {}
         for name in names:
             start = time.perf_counter()

@@ -6,8 +6,9 @@ on a conn test part's trials (10 trials of up to 487 samples), from the neutral 
   grow with the samples is the fixed cost of torch's autograd and Python);
 - its parts: the Gaussian head's profile Theta(p_z) (forward + backward), the discretisation and the
   recurrence of the compiled simulator;
-- three whole starts fitted one after another with torch on 2 threads and on 1, and in two Python threads
-  with torch on 1 (the starts are independent).
+- the starts of three parts (two starts each) fitted one after another on all threads, one after another on
+  one thread (`fit_jobs` with one worker, what the evaluation does with `workers=1`), and in two worker
+  processes of one thread each (`workers=2`, the default on 2 cores; their start-up included).
 
     python benchmarks/identification_step.py [--repeats 200]
 """
@@ -17,7 +18,6 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -42,7 +42,7 @@ def main() -> None:
     from pipe.data.prepared import data_scales, prepare_domain, profile_scales
     from pipe.data.preprocess import Profile
     from pipe.evaluation.context import EvalContext
-    from pipe.evaluation.identification import IdentificationSettings, _identify_part, start_head
+    from pipe.evaluation.identification import IdentificationSettings, StartJob, fit_jobs, fit_start, start_head
     from pipe.model import ltv
     from pipe.model.losses import masked_mse
     from pipe.model.pipe_model import PIPEModel
@@ -101,21 +101,28 @@ def main() -> None:
     for name, fn in parts.items():
         print(f"| {name} | {median_ms(fn, args.repeats):.2f} |")
 
-    starts = replace(settings, restarts=2)
+    two = replace(settings, restarts=2)
+
+    def start_jobs() -> list[StartJob]:
+        jobs_now = []
+        for part, trials in jobs:
+            part_batch = collate_trials([(0, p) for p in trials])
+            scales = ctx.model.dynamics.parameter_scales(*profile_scales(trials))
+            simulator = PIPEModel(None, ctx.model.head, ctx.model.dynamics).with_head(ctx.model.head, scales)
+            jobs_now += [StartJob(simulator, start_head(ctx.model.head, part.name, 0, k), part_batch, two)
+                         for k in range(two.restarts)]
+        return jobs_now
+
     print("\n| three parts, two starts each | seconds |")
     print("| --- | --- |")
-    for threads in (2, 1):
-        torch.set_num_threads(threads)
-        start = time.perf_counter()
-        for job in jobs:
-            _identify_part(ctx, *job, starts)
-        print(f"| one after another, torch on {threads} thread(s) | {time.perf_counter() - start:.2f} |")
-    torch.set_num_threads(1)
     start = time.perf_counter()
-    with ThreadPoolExecutor(2) as pool:
-        list(pool.map(lambda job: _identify_part(ctx, *job, starts), jobs))
-    print(f"| two Python threads, torch on 1 thread each | {time.perf_counter() - start:.2f} |")
-
+    for job in start_jobs():
+        fit_start(job.model, job.head, job.batch, job.settings)
+    print(f"| one after another, {torch.get_num_threads()} threads | {time.perf_counter() - start:.2f} |")
+    for workers in (1, 2):
+        start = time.perf_counter()
+        fit_jobs(start_jobs(), workers)
+        print(f"| fit_jobs, {workers} worker(s) of one thread | {time.perf_counter() - start:.2f} |")
 
 if __name__ == "__main__":
     main()

@@ -62,12 +62,13 @@ def fit_of(measured: np.ndarray, predicted: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ridge, rtol", [(0.0, 0.03), (0.1, 0.05)])
-def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge, rtol):
+@pytest.mark.parametrize("ridge", [0.0, 0.1])
+def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge):
     """On noise-free data simulated by the model itself (parameters away from the neutral profile): FIT(F)
     above 99 %, and the parameters that the force determines recovered, whatever PIPE's head has learnt:
-    the static gain b0 / a2 at every depth (without the ridge within 3 %, with the default ridge, a pull
-    towards the neutral profile, within 5 %), and the time constants a1 / a2 and a0 / a2 at the deepest point,
+    the static gain b0 / a2 at every depth within 5 %, with and without the ridge (the shallowest depth, where
+    the force is smallest, is determined least: fits whose force differs by under a millinewton rms put it
+    at 1.99 or 2.09), and the time constants a1 / a2 and a0 / a2 at the deepest point,
     where the stop excites the dynamics (along the slow ramp the force barely depends on them; mds2's
     parameters are known up to a common factor)."""
     context, test = ctx
@@ -79,12 +80,12 @@ def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge, rtol
     forces = oracle.predict(context, test)
     assert min(fit_of(p.force, f) for p, f in zip(test.profiles, forces)) > 99.0
     static = oracle.static_force(context, test, 6.0, np.array([2.0, 4.0, 6.0]))
-    np.testing.assert_allclose(static, [4.0, 8.0, 12.0], rtol=rtol)   # the static gain b0 / a2 = 2
+    np.testing.assert_allclose(static, [4.0, 8.0, 12.0], rtol=0.05)   # the static gain b0 / a2 = 2
     fitted = identify(context, [test])[0]
     assert fitted.converged and 20 < fitted.evaluations < IDENTIFICATION["max_evaluations"]   # it improved
     depth = torch.linspace(0.5, 6.0, 12)[None]
     a0, a1, a2, b0 = fitted.model.profile(context.latent(test)[None], torch.tensor([6.0]))(depth)[0].T
-    np.testing.assert_allclose((b0 / a2).numpy(), 2.0, rtol=rtol)
+    np.testing.assert_allclose((b0 / a2).numpy(), 2.0, rtol=0.05)
     assert float(a1[-1] / a2[-1]) == pytest.approx(0.05, rel=0.05)     # s
     assert float(a0[-1] / a2[-1]) == pytest.approx(1e-3, rel=0.15)     # s^2
 
@@ -138,6 +139,23 @@ def test_a_head_without_free_profiles_is_refused_clearly(ctx):
         identify(context, [test])
 
 
+def test_starts_fitted_in_worker_processes_equal_those_fitted_here(ctx):
+    """`workers`: the starts of several parts fitted in two started processes give every part the fit, the
+    loss and the evaluation count it gets here (each start runs on one thread wherever it runs)."""
+    context, test = ctx
+    context.settings["identification"]["max_evaluations"] = 60
+    parts = [*context.train, test]
+    here = identify(context, parts)
+    context.cache.clear()
+    context.settings["identification"]["workers"] = 2
+    there = identify(context, parts)
+    for a, b in zip(here, there):
+        assert (a.loss, a.evaluations, a.converged) == (b.loss, b.evaluations, b.converged)
+        for x, y in zip(a.model.head.parameters(), b.model.head.parameters()):
+            torch.testing.assert_close(x, y, rtol=0, atol=0)
+        torch.testing.assert_close(a.model.theta_scale, b.model.theta_scale, rtol=0, atol=0)
+
+
 def test_identifying_parts_together_equals_one_by_one(ctx):
     """A part's random starts do not depend on the other parts: fitting parts together gives each the fit
     it gets alone. Trials of different lengths are padded to one batch and masked."""
@@ -176,9 +194,10 @@ def test_each_start_draws_its_own_random_profile():
 
 
 def test_the_ridge_pulls_the_identified_profiles_towards_the_neutral_one(ctx):
-    """The ridge trades a little of the fit for profiles nearer the neutral one (unconstrained values 0)."""
+    """The ridge trades a little of the fit for profiles nearer the neutral one (unconstrained values 0). The
+    force is noisy: on exact data both fits reach the objective's floor (1e-6 P), where their order is rounding."""
     context, _ = ctx
-    far = part("f", 8.0)                       # a static gain of 8: b0 far above its scale
+    far = part("f", 8.0, noise=0.3)            # a static gain of 8: b0 far above its scale
     context.index["f"] = 2
     fits = {}
     for ridge in (0.0, 1.0):

@@ -60,7 +60,7 @@ def test_a_stored_fit_is_reused_by_a_later_run_without_fitting_again(tmp_path, m
     def refuse(*args):
         raise AssertionError("fitted again")
 
-    monkeypatch.setattr(identification, "_identify_part", refuse)
+    monkeypatch.setattr(identification, "fit_jobs", refuse)
     later = context(force_scale=50.0, cache=str(tmp_path))     # another run, trained on other data
     reused = identify(later, [fitted_part])[0]
     assert (reused.loss, reused.evaluations, reused.converged) == (fitted.loss, fitted.evaluations, fitted.converged)

@@ -13,7 +13,13 @@ from scipy.integrate import solve_ivp
 from pipe.model.chamfer import chamfer, mean_nearest_distance
 from pipe.plugins.encoder.dgcnn import EdgeConv, gather_neighbours, knn
 from pipe.plugins.encoder.pointnet import PointNetVAE, _Covariance, _MaxOverPoints
-from pipe.plugins.head.gaussian import GaussianHead, GaussianProfile, centres, width_at_edge
+from pipe.plugins.head.gaussian import (
+    GaussianHead,
+    GaussianProfile,
+    NormalisedGaussians,
+    centres,
+    width_at_edge,
+)
 from pipe.plugins.model.mds1 import MDS1
 from pipe.plugins.model.mds2 import MDS2
 
@@ -232,6 +238,31 @@ def test_profile_is_a_normalised_weighted_sum():
     weights = profile.weights(p)
     assert weights.shape == (1, 3, 1, 2)        # (B, T, P, N)
     np.testing.assert_allclose(weights.sum(-1).numpy(), 1.0)
+
+
+def test_the_written_out_gaussian_backward_equals_autograds_and_passes_gradcheck():
+    """`NormalisedGaussians`' hand-written backward against autograd through the formula as written, and
+    gradcheck in float64, for amplitudes, centres, precisions and depths."""
+    generator = torch.Generator().manual_seed(3)
+    shape = (2, 3, 4)
+    amplitude, centre, precision = (torch.rand(shape, generator=generator, dtype=torch.float64) + 0.5
+                                    for _ in range(3))
+    centre = centre * 4
+    depth = torch.rand(2, 7, generator=generator, dtype=torch.float64) * 5
+    inputs = [t.clone().requires_grad_() for t in (depth, amplitude, centre, precision)]
+
+    def as_written(depth, amplitude, centre, precision):
+        psi = torch.exp(-precision[..., None] * (depth[:, None, None, :] - centre[..., None]) ** 2)
+        return (amplitude[..., None] * psi).sum(2) / psi.sum(2)
+
+    weights = torch.rand(2, 3, 7, generator=generator, dtype=torch.float64)
+    written = torch.autograd.grad((NormalisedGaussians.apply(*inputs) * weights).sum(), inputs)
+    reference = torch.autograd.grad((as_written(*inputs) * weights).sum(), inputs)
+    for got, expected in zip(written, reference):
+        torch.testing.assert_close(got, expected, rtol=1e-10, atol=1e-12)
+    assert torch.autograd.gradcheck(NormalisedGaussians.apply, inputs)
+    depth_fixed = [inputs[0].detach(), *inputs[1:]]           # the usual case: depths are data, no gradient
+    assert torch.autograd.gradcheck(NormalisedGaussians.apply, depth_fixed)
 
 
 def test_profile_stays_within_its_amplitudes():

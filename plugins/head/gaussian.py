@@ -54,7 +54,37 @@ class GaussianProfile:
         return torch.softmax(log_psi, dim=2)
 
     def __call__(self, depth: torch.Tensor) -> torch.Tensor:
-        return (self._weights_depth_last(depth) * self.amplitude[..., None]).sum(2).transpose(1, 2)
+        precision = 0.5 / self.width**2
+        return NormalisedGaussians.apply(depth, self.amplitude, self.centre, precision).transpose(1, 2)
+
+
+class NormalisedGaussians(torch.autograd.Function):
+    """Theta (B, P, T) = sum_i a_i softmax_i(-k_i (p - b_i)^2) at depths p (B, T), for amplitudes a, centres b
+    and precisions k = 1 / (2 c^2), each (B, P, N), with its backward written out. Autograd's chain through the
+    broadcast (B, P, N, T) terms (a division, its reductions, the softmax) took most of a system identification's
+    evaluation; written out, the backward is six passes over them (BENCHMARKS.md, evaluation)."""
+
+    @staticmethod
+    def forward(ctx, depth: torch.Tensor, amplitude: torch.Tensor, centre: torch.Tensor,
+                precision: torch.Tensor) -> torch.Tensor:
+        offset = depth[:, None, None, :] - centre[..., None]             # (B, P, N, T): depth along the last axis
+        weights = torch.softmax(offset * offset * -precision[..., None], dim=2)
+        theta = (weights * amplitude[..., None]).sum(2)
+        ctx.save_for_backward(offset, weights, amplitude, precision, theta)
+        return theta
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        offset, weights, amplitude, precision, theta = ctx.saved_tensors
+        weighted = weights * grad[:, :, None, :]                          # dTheta/da_i = w_i
+        # d Theta / d e_i = w_i (a_i - Theta) for the exponents e_i = -k_i (p - b_i)^2 of the softmax
+        exponent = weighted * (amplitude[..., None] - theta[:, :, None, :])
+        moment = exponent * offset
+        grad_depth = None
+        if ctx.needs_input_grad[0]:
+            grad_depth = -2.0 * (moment * precision[..., None]).sum((1, 2))
+        return (grad_depth, weighted.sum(3), 2.0 * precision * moment.sum(3),
+                -(moment * offset).sum(3))
 
 
 class ResidualBlock(nn.Module):

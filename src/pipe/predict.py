@@ -25,6 +25,7 @@ from omegaconf import DictConfig  # noqa: E402
 
 from pipe.data.dataset import Trial, read_numeric_csv  # noqa: E402
 from pipe.data.preprocess import PointCloud, cloud_from_mesh, resample  # noqa: E402
+from pipe.data.spec import MESH_SUFFIXES  # noqa: E402
 from pipe.errors import PipeError  # noqa: E402
 from pipe.files import atomic_path, write_text_atomically  # noqa: E402
 from pipe.model.card import BandCard, ModelCard  # noqa: E402
@@ -33,9 +34,6 @@ from pipe.store import tracking_uri  # noqa: E402
 
 log = logging.getLogger(__name__)
 SIZE_TOLERANCE = 10.0   # a part this many times smaller or larger than the training parts is suspicious
-
-
-MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf", ".3mf", ".step", ".stp", ".iges", ".igs")
 
 
 @dataclass

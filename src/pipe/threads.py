@@ -9,7 +9,8 @@ changes the order of float sums and so the trained model.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from typing import Any
 
 
@@ -38,9 +39,32 @@ def job_threads(threads: int | None, launcher: Mapping[str, Any], cores: int) ->
 
 def set_threads(threads: int) -> None:
     """torch's intra-op threads and numba's parallel kernels' threads (at most numba's pool, which
-    NUMBA_NUM_THREADS sizes at start-up)."""
-    import numba
+    NUMBA_NUM_THREADS sizes at start-up; nothing for numba where it is not installed)."""
     import torch
 
     torch.set_num_threads(threads)
+    try:
+        import numba
+    except ImportError:
+        return
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+
+
+@contextmanager
+def threads_set_to(threads: int) -> Iterator[None]:
+    """torch's and numba's threads at `threads` inside, restored after."""
+    import torch
+
+    try:
+        import numba
+        numba_threads = numba.get_num_threads()
+    except ImportError:
+        numba = None
+    torch_threads = torch.get_num_threads()
+    set_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(torch_threads)
+        if numba is not None:
+            numba.set_num_threads(numba_threads)

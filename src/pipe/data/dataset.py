@@ -9,14 +9,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
-from pipe.data.mesh import MESH_SUFFIXES
-from pipe.data.spec import DatasetSpec, load_spec
+from pipe.data.spec import MESH_SUFFIXES, DatasetSpec, load_spec
 from pipe.errors import DatasetError
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 TRUTH_DIR = "truth"
 TRUTH_COLUMNS = ("p_z", "F_static")
@@ -68,6 +69,10 @@ def numeric_columns(frame: pd.DataFrame, names: list[str] | tuple[str, ...], pat
     """The named columns of a table read from `path` as finite float arrays. A missing column names the
     ones the file has and, when it has one, the delimiter the file seems to use instead of `delimiter`; a
     missing, non-numeric, NaN or infinite value names its column and first data row."""
+    # imported here and below: pandas takes a third of a second to import, and the modules that only fit models
+    # (a worker process of pipe.evaluation.identification) never read a table
+    import pandas as pd
+
     missing = [n for n in names if n not in frame.columns]
     if missing:
         found = list(frame.columns)
@@ -92,6 +97,8 @@ def numeric_columns(frame: pd.DataFrame, names: list[str] | tuple[str, ...], pat
 
 def read_numeric_csv(path: Path, columns: tuple[str, ...]) -> dict[str, np.ndarray]:
     """Read the named columns of a CSV as finite float arrays of at least two rows."""
+    import pandas as pd
+
     if not path.is_file():
         raise DatasetError("file does not exist", path)
     if path.stat().st_size == 0:

@@ -16,11 +16,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from pipe.data.spec import INSERTION_AXES, length_to_mm
+from pipe.data.spec import BREP_TYPES, INSERTION_AXES, MESH_SUFFIXES, length_to_mm
 from pipe.errors import DatasetError
 
-BREP_TYPES = {".step": "step", ".stp": "step", ".iges": "iges", ".igs": "iges"}
-MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf", ".3mf", *BREP_TYPES)
 CAD_EXTRA = "pip install 'pipe-sysid[cad]'"
 UNITS = {"meters": "m", "millimeters": "mm", "millimeter": "mm", "meter": "m", "inches": "in", "inch": "in",
          "centimeters": "cm", "centimeter": "cm", "micron": "micron", "microns": "micron", "feet": "feet",

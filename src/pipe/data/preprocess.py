@@ -10,13 +10,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
-import trimesh
 
 from pipe.data.dataset import Trial
-from pipe.data.mesh import load_mesh, orient
+
+# open3d and trimesh are imported where meshes are handled: they take about 1.5 s to import, and the modules
+# that only use profiles (a worker process fitting models, predict.py before it reads a mesh) need neither
+if TYPE_CHECKING:
+    import trimesh
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,8 @@ def sample_point_cloud(mesh: trimesh.Trimesh, n: int = 1024, seed: int = 0, init
 
     `mesh` must already be in mm (see `pipe.data.mesh.load_mesh`). Deterministic for a given seed.
     """
+    import open3d as o3d
+
     o3d_mesh = o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=float)),
         o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32)),
@@ -86,6 +91,8 @@ def cloud_from_mesh(path: str | Path, units: str = "mm", points: int = 1024, see
     """The whole mesh -> point cloud chain of training, `pipe data pointcloud` and prediction: load the mesh
     file in mm (`units` its length unit, or "auto"), turn its insertion `axis` onto z (`orient`), sample
     `points` points, centre them."""
+    from pipe.data.mesh import load_mesh, orient
+
     mesh = orient(load_mesh(path, units), axis, path)
     cloud = sample_point_cloud(mesh, points, seed=seed)
     info = MeshInfo(mesh.metadata["file_units"], float(mesh.extents.max()), bool(mesh.is_watertight))

@@ -6,19 +6,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import trimesh
 import yaml
 
 from pipe.errors import DatasetError, read_yaml_mapping
 
 SPEC_FILE = "dataset.yaml"
 DEFAULT_COLUMNS = {"time": "t", "position": "p_z", "force": "F_z"}
+BREP_TYPES = {".step": "step", ".stp": "step", ".iges": "iges", ".igs": "iges"}   # meshed by OpenCascade
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf", ".3mf", *BREP_TYPES)
 INSERTION_AXES = ("z", "x", "y", "-x", "-y", "-z", "principal")   # parts.<part>.axis: the mesh's insertion axis
 _KNOWN_KEYS = {"name", "description", "units", "columns", "sign", "sample_rate_hz", "parts", "source"}
 
 
 def length_to_mm(unit: str, path: str | Path | None = None) -> float:
     """Factor that converts a length in `unit` (any unit trimesh knows: mm, cm, m, in, ...) to mm."""
+    import trimesh  # here: it takes a second to import, and most users of this module never need it
+
     try:
         factor = float(trimesh.units.unit_conversion(str(unit), "mm"))
     except (ValueError, KeyError, TypeError):

@@ -12,6 +12,7 @@ from pipe.data.batches import stack_clouds
 from pipe.data.prepared import PartData
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
+from pipe.evaluation.identification import identify_all
 from pipe.evaluation.methods import METHODS, Method
 from pipe.evaluation.metrics import force_metrics, mean_metrics, rms
 from pipe.model.chamfer import chamfer, mean_nearest_distance
@@ -63,13 +64,17 @@ def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -
     if unknown:
         raise PipeError(f"unknown method(s) {unknown} in evaluation.baselines; available: {list(METHODS)}")
     ctx.model.eval()
-    results = {}
+    methods = {}
     for name in names:
         method = METHODS[name]()
         reason = method.unavailable(ctx, test)
         if reason:
             log.info("%s left out: %s", name, reason)
-            continue
+        else:
+            methods[name] = method
+    identify_all(ctx, [request for method in methods.values() for request in method.identifications(ctx, test)])
+    results = {}
+    for name, method in methods.items():
         method.fit(ctx)
         forces = method.predict_all(ctx, test)
         bands = {part.name: band for part in test if (band := method.band(ctx, part)) is not None}

@@ -24,6 +24,10 @@ are the part's own, so a part's fit does not depend on what PIPE was trained on 
 curve is the same at every training-set size). With `cache` set, fits are stored in and reused from that
 folder (`pipe.evaluation.fit_cache`).
 
+The starts are independent: `identify_all` fits every start of every part it is asked for at once, in
+`workers` processes (by default one per thread of the run). Each start runs on one thread wherever it runs,
+so the fits do not depend on the number of workers.
+
 Stopping rule, per start: every `check_every` L-BFGS iterations the lowest objective so far is compared with
 the one at the previous check; the start has converged when it fell by less than `tolerance` (the MSE by
 less than that share); otherwise it stops after `max_evaluations` loss-and-gradient evaluations. Each start
@@ -34,7 +38,11 @@ reported loss is the mean squared force error there.
 from __future__ import annotations
 
 import math
+import multiprocessing
 import os
+import pickle
+import signal
+import warnings
 import zlib
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -49,9 +57,11 @@ from pipe.data.preprocess import Profile
 from pipe.errors import options_dataclass
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.fit_cache import fit_key, load_fit, store_fit
+from pipe.model import ltv
 from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import masked_mse
 from pipe.model.pipe_model import PIPEModel
+from pipe.threads import threads_set_to
 
 
 @dataclass(frozen=True)
@@ -64,6 +74,7 @@ class IdentificationSettings:
     ridge: float = 0.1            # weight of the pull towards the neutral profile (see the module's docstring)
     cache: str | None = None      # a folder (relative: to the project root) to store fits in and reuse them
                                   # from; None: within the run only
+    workers: int | None = None    # processes fitting starts at once; None: the run's torch threads
 
     @classmethod
     def from_config(cls, values: dict[str, Any] | None) -> IdentificationSettings:
@@ -144,38 +155,127 @@ def fit_start(model: PIPEModel, head: ParameterHead, batch: TrialBatch,
     return StartFit(best_loss, best_mse, evaluations, converged)
 
 
-def _identify_part(ctx: EvalContext, part: PartData, trials: list[Profile],
-                   settings: IdentificationSettings) -> Identified:
-    batch = collate_trials([(0, p) for p in trials])
-    scaled = ctx.model.with_head(ctx.model.head, ctx.model.dynamics.parameter_scales(*profile_scales(trials)))
-    heads = [start_head(ctx.model.head, part.name, ctx.seed, start) for start in range(settings.restarts)]
-    fits = [fit_start(scaled, head, batch, settings) for head in heads]
-    best = min(range(len(fits)), key=lambda k: fits[k].objective)
-    return Identified(scaled.with_head(heads[best]), fits[best].loss, fits[best].evaluations,
-                      fits[best].converged)
+class StartJob(NamedTuple):
+    """One start of one part: what a worker process needs to fit it."""
+    model: PIPEModel              # the part's parameter scales, head structure and dynamic model (no encoder)
+    head: ParameterHead           # the start's free head, fitted in place
+    batch: TrialBatch
+    settings: IdentificationSettings
 
 
-def _identify_cached(ctx: EvalContext, part: PartData, trials: list[Profile], target: str,
-                     settings: IdentificationSettings) -> Identified:
-    """`_identify_part`, through the folder `settings.cache` where one is set."""
+def fit_job(job: StartJob) -> tuple[dict[str, torch.Tensor], StartFit]:
+    """A start fitted on one thread (the same arithmetic in every process): its head's state and its fit."""
+    with threads_set_to(1):
+        fit = fit_start(job.model, job.head, job.batch, job.settings)
+    return job.head.state_dict(), fit
+
+
+def _start_worker(backend: str) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)    # Ctrl-C: the launching process stops the pool
+    warnings.filterwarnings("ignore", message=".*TBB threading layer.*")   # shown once by the launching process
+    ltv.set_backend(backend)
+
+
+def _fit_pickled(job: bytes) -> bytes:
+    return pickle.dumps(fit_job(pickle.loads(job)))
+
+
+def fit_jobs(jobs: list[StartJob], workers: int) -> list[tuple[dict[str, torch.Tensor], StartFit]]:
+    """Every job's fit, in `workers` started processes (spawned: the compiled kernels' OpenMP thread pool is
+    not safe to fork) or, with one worker or one job, here. The jobs travel pickled with their tensors' data
+    (not through torch's shared memory, which the started processes of trainer=ddp had to work around)."""
+    if workers <= 1 or len(jobs) <= 1:
+        return [fit_job(job) for job in jobs]
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(min(workers, len(jobs)), initializer=_start_worker, initargs=(ltv.get_backend(),)) as pool:
+        # terminated on leaving, also by an error or Ctrl-C
+        return [pickle.loads(fit) for fit in pool.imap(_fit_pickled, [pickle.dumps(job) for job in jobs])]
+
+
+class _Pending(NamedTuple):
+    fits: dict[str, Identified]   # where the part's fit goes (the context's cache for its target and starts)
+    part: PartData
+    trials: list[Profile]
+    settings: IdentificationSettings
+    stored_as: tuple[Path, str] | None    # the cache folder and key to store the fit under
+
+
+class Request(NamedTuple):
+    """Parts to identify on their trials' `target`, from `restarts` starts (None: the configured number)."""
+    parts: list[PartData]
+    target: str = "force"
+    restarts: int | None = None
+
+
+def _settings(ctx: EvalContext, restarts: int | None) -> IdentificationSettings:
+    settings = IdentificationSettings.from_config(ctx.settings.get("identification"))
+    return settings if restarts is None else replace(settings, restarts=restarts)
+
+
+def _fits(ctx: EvalContext, target: str, settings: IdentificationSettings) -> dict[str, Identified]:
+    return ctx.cache.setdefault(f"identified_{target}_{settings.restarts}", {})
+
+
+def _stored(ctx: EvalContext, part: PartData, trials: list[Profile], target: str,
+            settings: IdentificationSettings) -> tuple[Identified | None, tuple[Path, str] | None]:
+    """The part's fit from the folder `settings.cache` where one is set and holds it, and where to store it."""
     if settings.cache is None:
-        return _identify_part(ctx, part, trials, settings)
+        return None, None
     folder = Path(os.environ.get("PROJECT_ROOT", ".")) / settings.cache   # a relative folder: from the root
-    decisive = {name: value for name, value in asdict(settings).items() if name != "cache"}
+    decisive = {name: value for name, value in asdict(settings).items() if name not in ("cache", "workers")}
     seed = ctx.seed if settings.restarts > 1 else None      # the neutral start alone draws nothing
     key = fit_key(part.name, trials, target, decisive, seed, ctx.dt, ctx.model.head, ctx.model.dynamics)
     stored = load_fit(folder, part.name, key)
-    if stored is not None:
-        head = ctx.model.head.free_profiles(torch.zeros(1, dtype=torch.long))
-        head.load_state_dict(stored["head"])
-        head.eval().requires_grad_(False)
-        return Identified(ctx.model.with_head(head, stored["theta_scale"]), stored["loss"], stored["evaluations"],
-                          stored["converged"])
-    fitted = _identify_part(ctx, part, trials, settings)
-    store_fit(folder, part.name, key, {"head": fitted.model.head.state_dict(), "theta_scale": fitted.model.theta_scale,
-                                       "loss": fitted.loss, "evaluations": fitted.evaluations,
-                                       "converged": fitted.converged})
-    return fitted
+    if stored is None:
+        return None, (folder, key)
+    head = ctx.model.head.free_profiles(torch.zeros(1, dtype=torch.long))
+    head.load_state_dict(stored["head"])
+    head.eval().requires_grad_(False)
+    return Identified(ctx.model.with_head(head, stored["theta_scale"]), stored["loss"], stored["evaluations"],
+                      stored["converged"]), None
+
+
+def identify_all(ctx: EvalContext, requests: list[Request]) -> None:
+    """Identify every requested part that the context's cache (and the folder `cache`) does not hold yet,
+    all their starts at once, into the context's cache; `identify` then returns them."""
+    pending: list[_Pending] = []
+    for request in requests:
+        settings = _settings(ctx, request.restarts)
+        fits = _fits(ctx, request.target, settings)
+        for part in request.parts:
+            if part.name in fits or any(p.fits is fits and p.part.name == part.name for p in pending):
+                continue
+            trials = [Profile(p.time, p.depth, getattr(p, request.target)) for p in part.profiles]
+            stored, stored_as = _stored(ctx, part, trials, request.target, settings)
+            if stored is not None:
+                fits[part.name] = stored
+            else:
+                pending.append(_Pending(fits, part, trials, settings, stored_as))
+    jobs, owners = [], []
+    for k, item in enumerate(pending):
+        batch = collate_trials([(0, p) for p in item.trials])
+        scales = ctx.model.dynamics.parameter_scales(*profile_scales(item.trials))
+        simulator = PIPEModel(None, ctx.model.head, ctx.model.dynamics).with_head(ctx.model.head, scales)
+        for start in range(item.settings.restarts):
+            head = start_head(ctx.model.head, item.part.name, ctx.seed, start)
+            jobs.append(StartJob(simulator, head, batch, item.settings))
+            owners.append(k)
+    if not jobs:
+        return
+    results = fit_jobs(jobs, _settings(ctx, None).workers or torch.get_num_threads())
+    for k, item in enumerate(pending):
+        starts = [(job, result) for job, result, owner in zip(jobs, results, owners) if owner == k]
+        job, (state, fit) = min(starts, key=lambda start: start[1][1].objective)
+        job.head.load_state_dict(state)
+        job.head.eval().requires_grad_(False)
+        identified = Identified(ctx.model.with_head(job.head, job.model.theta_scale), fit.loss, fit.evaluations,
+                                fit.converged)
+        if item.stored_as is not None:
+            folder, key = item.stored_as
+            store_fit(folder, item.part.name, key,
+                      {"head": job.head.state_dict(), "theta_scale": identified.model.theta_scale,
+                       "loss": fit.loss, "evaluations": fit.evaluations, "converged": fit.converged})
+        item.fits[item.part.name] = identified
 
 
 def identify(ctx: EvalContext, parts: list[PartData], target: str = "force",
@@ -183,12 +283,6 @@ def identify(ctx: EvalContext, parts: list[PartData], target: str = "force",
     """Each part's profiles identified from scratch on its own trials' `target` ("force", or "force_clean",
     the noise-free force of synthetic data), from `restarts` starts (default: the configured number);
     cached per part, target and number of starts in the context."""
-    settings = IdentificationSettings.from_config(ctx.settings.get("identification"))
-    if restarts is not None:
-        settings = replace(settings, restarts=restarts)
-    fits = ctx.cache.setdefault(f"identified_{target}_{settings.restarts}", {})
-    for part in parts:
-        if part.name not in fits:
-            trials = [Profile(p.time, p.depth, getattr(p, target)) for p in part.profiles]
-            fits[part.name] = _identify_cached(ctx, part, trials, target, settings)
+    identify_all(ctx, [Request(parts, target, restarts)])
+    fits = _fits(ctx, target, _settings(ctx, restarts))
     return [fits[p.name] for p in parts]

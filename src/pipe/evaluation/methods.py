@@ -28,7 +28,7 @@ from torch import nn
 from pipe.data.batches import unpad
 from pipe.data.prepared import PartData
 from pipe.evaluation.context import EvalContext
-from pipe.evaluation.identification import Identified, identify
+from pipe.evaluation.identification import Identified, Request, identify
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.uncertainty import BandSettings, ForceBands, conformal_offset, force_band
 from pipe.registry import Registry
@@ -53,6 +53,11 @@ class Method(ABC):
     def diagnostics(self, ctx: EvalContext, part: PartData) -> dict[str, float]:
         """Extra per-part figures for the results (e.g. an identification's final loss)."""
         return {}
+
+    def identifications(self, ctx: EvalContext, parts: list[PartData]) -> list[Request]:
+        """The system identifications (`identify`) the method will ask for to predict these parts, so that
+        the evaluation fits every method's starts at once, in its worker processes."""
+        return []
 
     def fit(self, ctx: EvalContext) -> None:
         """Learn whatever the method needs from the training parts."""
@@ -140,6 +145,9 @@ class PIPE(Method):
 class Oracle(Method):
     name = "oracle"
 
+    def identifications(self, ctx, parts):
+        return [Request(parts, self.target)]
+
     def _identified(self, ctx: EvalContext, part: PartData) -> Identified:
         return identify(ctx, [part], self.target)[0]
 
@@ -192,6 +200,9 @@ class GPR(Method):
     name = "gpr"
     grid = np.linspace(0.0, 1.0, 21)
     LENGTH_SCALES = (0.25, 0.5, 1.0, 2.0, 4.0)
+
+    def identifications(self, ctx, parts):
+        return [Request(ctx.train, restarts=1)]
 
     def fit(self, ctx):
         rows, targets = [], []

@@ -27,7 +27,9 @@ class ScaledProfile:
 
 
 class PIPEModel(nn.Module):
-    def __init__(self, encoder: PointCloudVAE, head: ParameterHead, dynamics: DynamicModel,
+    """With `encoder` None: the head and the dynamic model alone, what a system identification simulates."""
+
+    def __init__(self, encoder: PointCloudVAE | None, head: ParameterHead, dynamics: DynamicModel,
                  force_scale: float = 1.0, depth_scale: float = 1.0) -> None:
         super().__init__()
         self.encoder, self.head, self.dynamics = encoder, head, dynamics
