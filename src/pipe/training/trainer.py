@@ -59,7 +59,7 @@ def forget_epochs_after(run_dir: Path, stage: str, checkpoint: Path) -> None:
     log_file = loss_log(run_dir, stage)
     if not log_file.is_file():
         return
-    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False, mmap=True)   # tensors mapped, not read
     done = state["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"]   # epochs it will not train again
     with open(log_file, newline="") as handle:
         reader = csv.DictReader(handle)
