@@ -12,6 +12,7 @@ from pipe.data.dataset import StaticCurve
 from pipe.data.prepared import PartData
 from pipe.data.preprocess import PointCloud, Profile
 from pipe.errors import PipeError
+from pipe.evaluation import identification
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.evaluation.identification import identify, start_head
@@ -154,6 +155,23 @@ def test_starts_fitted_in_worker_processes_equal_those_fitted_here(ctx):
         for x, y in zip(a.model.head.parameters(), b.model.head.parameters()):
             torch.testing.assert_close(x, y, rtol=0, atol=0)
         torch.testing.assert_close(a.model.theta_scale, b.model.theta_scale, rtol=0, atol=0)
+
+
+def test_a_daemon_process_fits_its_starts_itself(ctx, monkeypatch):
+    """Python forbids a daemon process to start processes (AssertionError "daemonic processes are not allowed
+    to have children"): there the starts are fitted in the process itself, whatever `workers` says."""
+    context, test = ctx
+    context.settings["identification"] |= {"max_evaluations": 20, "workers": 2}
+
+    class Daemon:
+        daemon = True
+
+    def no_processes(*args, **kwargs):
+        raise AssertionError("a daemon started processes")
+
+    monkeypatch.setattr(identification.multiprocessing, "current_process", lambda: Daemon())
+    monkeypatch.setattr(identification.multiprocessing, "get_context", no_processes)
+    assert identify(context, [*context.train, test])[0].evaluations == 20
 
 
 def test_identifying_parts_together_equals_one_by_one(ctx):

@@ -61,8 +61,8 @@ class GaussianProfile:
 class NormalisedGaussians(torch.autograd.Function):
     """Theta (B, P, T) = sum_i a_i softmax_i(-k_i (p - b_i)^2) at depths p (B, T), for amplitudes a, centres b
     and precisions k = 1 / (2 c^2), each (B, P, N), with its backward written out. Autograd's chain through the
-    broadcast (B, P, N, T) terms (a division, its reductions, the softmax) took most of a system identification's
-    evaluation; written out, the backward is six passes over them (BENCHMARKS.md, evaluation)."""
+    broadcast (B, P, N, T) terms (a division, its reductions, the softmax) took a third of a system
+    identification's evaluation; written out, the backward is six passes over them (BENCHMARKS.md)."""
 
     @staticmethod
     def forward(ctx, depth: torch.Tensor, amplitude: torch.Tensor, centre: torch.Tensor,

@@ -184,7 +184,7 @@ def fit_jobs(jobs: list[StartJob], workers: int) -> list[tuple[dict[str, torch.T
     """Every job's fit, in `workers` started processes (spawned: the compiled kernels' OpenMP thread pool is
     not safe to fork) or, with one worker or one job, here. The jobs travel pickled with their tensors' data
     (not through torch's shared memory, which the started processes of trainer=ddp had to work around)."""
-    if workers <= 1 or len(jobs) <= 1:
+    if workers <= 1 or len(jobs) <= 1 or multiprocessing.current_process().daemon:   # a daemon starts none
         return [fit_job(job) for job in jobs]
     context = multiprocessing.get_context("spawn")
     with context.Pool(min(workers, len(jobs)), initializer=_start_worker, initargs=(ltv.get_backend(),)) as pool:
