@@ -14,13 +14,14 @@ from mlflow.tracking import MlflowClient
 from pipe.errors import PipeError
 from pipe.pipeline import run_domain
 from pipe.training.fit import logged_minimum
+from pipe.training.trainer import loss_log
 
 TOLERANCE = 0.02   # relative: DDP's losses against one process's (measured: within 0.3 %, 2 smoke epochs)
 
 
 def logged_losses(run_dir: Path, stage: str) -> dict[str, list[float]]:
     """Each logged column of a stage's metrics.csv, epoch by epoch."""
-    with open(run_dir / "logs" / stage / "metrics.csv", newline="") as handle:
+    with open(loss_log(run_dir, stage), newline="") as handle:
         rows = list(csv.DictReader(handle))
     columns = [c for c in rows[0] if c.startswith(f"{stage}/")]
     return {c: [float(r[c]) for r in rows if r[c]] for c in columns}
