@@ -293,6 +293,25 @@ def test_blackbox_learns_a_static_map(ctx):
     np.testing.assert_allclose(static, [2.0, 4.0, 6.0], atol=0.6)     # part a: F = 1 N/mm * p (static)
 
 
+def test_blackbox_does_not_depend_on_what_the_process_drew_before(ctx):
+    """Its initial weights come from the run's seed: an evaluation after a training in the same process
+    and one in a process of its own (phase=evaluate) fit the same network; another seed, another network."""
+    context, test = ctx
+    context.settings["blackbox_steps"] = 30
+    fitted = []
+    for drawn_before in (0, 1):
+        torch.manual_seed(drawn_before)
+        torch.rand(1000)
+        blackbox = METHODS["blackbox"]()
+        blackbox.fit(context)
+        fitted.append(blackbox.predict(context, test)[0])
+    np.testing.assert_array_equal(fitted[0], fitted[1])
+    context.seed = 1
+    blackbox = METHODS["blackbox"]()
+    blackbox.fit(context)
+    assert not np.array_equal(blackbox.predict(context, test)[0], fitted[0])
+
+
 def test_mean_is_the_average_training_force_over_depth(ctx):
     context, test = ctx
     mean = METHODS["mean"]()

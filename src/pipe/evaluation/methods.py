@@ -277,8 +277,10 @@ class BlackBox(Method):
         self.scales = (force_scale, depth_scale)
         codes = torch.stack([ctx.latent(part) for part in ctx.train])
         self.code_mean, self.code_std = codes.mean(0), codes.std(0) + 1e-6
-        self.net = nn.Sequential(nn.Linear(codes.shape[1] + 1, 128), nn.ReLU(), nn.Linear(128, 128), nn.ReLU(),
-                                 nn.Linear(128, 128), nn.ReLU(), nn.Linear(128, 1))
+        with torch.random.fork_rng(devices=[]):   # its initial weights from the run's seed, not from what the
+            torch.manual_seed(ctx.seed)            # process drew before (a training in this process, or none)
+            self.net = nn.Sequential(nn.Linear(codes.shape[1] + 1, 128), nn.ReLU(), nn.Linear(128, 128), nn.ReLU(),
+                                     nn.Linear(128, 128), nn.ReLU(), nn.Linear(128, 1))
         inputs = torch.cat([self._inputs(ctx, part, p.depth) for part in ctx.train for p in part.profiles])
         force = torch.cat([torch.as_tensor(p.force, dtype=torch.float32) for part in ctx.train
                            for p in part.profiles])
