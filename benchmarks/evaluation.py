@@ -1,5 +1,5 @@
-"""Wall time and results of each evaluated method, on the trained model of an earlier run (its checkpoints
-are copied to a temporary folder and resumed, so training is skipped and the run folder is not touched).
+"""Wall time and results of each evaluated method, on the trained model of an earlier run (`phase=evaluate`:
+its checkpoints are only read, the evaluation's files go to a temporary folder).
 
 First every method's system identifications are fitted at once, as the evaluation does (the oracles'
 starts on the test parts, gpr's on the training parts, in `evaluation.identification.workers` processes);
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sys
 import tempfile
 import time
@@ -51,9 +50,8 @@ def main(run: str, overrides: list[str]) -> None:
     pipeline.evaluate_methods = one_at_a_time
     saved = OmegaConf.load(Path(run) / "config.yaml")
     with tempfile.TemporaryDirectory() as tmp, initialize_config_module("pipe.conf", version_base="1.3"):
-        shutil.copytree(Path(run) / "checkpoints", Path(tmp) / "run" / "checkpoints")
-        cfg = compose("config", overrides=[f"domain={saved.domain.name}", f"seed={saved.seed}",
-                                           f"paths.output_dir={tmp}/run", f"resume={tmp}/run",
+        cfg = compose("config", overrides=[f"domain={saved.domain.name}", f"seed={saved.seed}", "phase=evaluate",
+                                           f"paths.output_dir={tmp}/run", f"resume={Path(run).resolve()}",
                                            "trainer.progress_bar=false", "mlflow.enabled=false", *overrides])
         start = time.perf_counter()
         pipeline.run_domain(cfg)

@@ -39,18 +39,18 @@ def main() -> None:
     from hydra import compose, initialize_config_module
 
     from pipe.data.batches import collate_trials
-    from pipe.data.prepared import data_scales, prepare_domain, profile_scales
+    from pipe.data.prepared import data_scales, profile_scales
     from pipe.data.preprocess import Profile
     from pipe.evaluation.context import EvalContext
     from pipe.evaluation.identification import IdentificationSettings, StartJob, fit_jobs, fit_start, start_head
     from pipe.model import ltv
     from pipe.model.losses import masked_mse
     from pipe.model.pipe_model import PIPEModel
-    from pipe.pipeline import build_components, ensure_dataset
+    from pipe.pipeline import build_components, load_domain
 
     with initialize_config_module("pipe.conf", version_base="1.3"):
         cfg = compose("config", overrides=["domain=conn"])
-    data = prepare_domain(ensure_dataset(cfg.data, Path(cfg.paths.root)), cfg.data, cfg.domain)
+    data = load_domain(cfg)
     encoder, head, dynamics = build_components(cfg)
     train, test = data.splits["train"], data.splits["test"]
     ctx = EvalContext(PIPEModel(encoder, head, dynamics, *data_scales(train)), torch.zeros(1, encoder.latent_dim),

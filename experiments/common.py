@@ -10,12 +10,12 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from pipe.data.prepared import PreparedDomain, prepare_domain
+from pipe.data.prepared import PreparedDomain
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
-from pipe.pipeline import build_components, ensure_dataset
+from pipe.pipeline import build_components, load_domain
 
 
 def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, PreparedDomain, tuple]:
@@ -28,7 +28,7 @@ def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, Prepare
         cfg.stages.vae.update(stage_overrides)
     ltv.set_backend(cfg.simulator)
     L.seed_everything(cfg.seed, workers=True)
-    data = prepare_domain(ensure_dataset(cfg.data), cfg.data, cfg.domain)
+    data = load_domain(cfg)
     return cfg, data, build_components(cfg)
 
 

@@ -53,16 +53,24 @@ def test_dvc_composes_the_same_config_as_pipe_params():
     assert hydra["enabled"] and hydra["config_module"] == CONFIG_MODULE and hydra["config_name"] == PIPELINE_CONFIG
 
 
-def test_each_training_stage_declares_every_parameter_it_reads():
-    train = dvc_yaml()["stages"]["train"]
-    params = train["do"]["params"]
-    keys = {p for p in params if isinstance(p, str)}
-    files = [next(iter(p)) for p in params if isinstance(p, dict)]
-    shared = set(yaml.safe_load((ROOT / PARAMS_FILE).read_text()))
-    assert keys == shared - set(COMMAND_KEYS) - set(PIPELINE_KEYS)
-    assert files == ["conf/domain/${item}.yaml"] and train["foreach"] == "${domains}"
-    assert "conf" not in train["do"]["deps"]    # a change in one domain's file must not retrain the others
-    assert "params=params.yaml domain=${item}" in train["do"]["cmd"]
+def test_each_domain_stage_declares_every_parameter_it_reads():
+    """train@ and evaluate@ together declare every section of params.yaml train.py reads; the training not the
+    evaluation's settings (changing one reruns the evaluation alone), the evaluation not the trainer's."""
+    stages = dvc_yaml()["stages"]
+    shared = set(yaml.safe_load((ROOT / PARAMS_FILE).read_text())) - set(COMMAND_KEYS) - set(PIPELINE_KEYS)
+    declared = {}
+    for name in ("train", "evaluate"):
+        stage = stages[name]
+        params = stage["do"]["params"]
+        declared[name] = {p for p in params if isinstance(p, str)}
+        assert [next(iter(p)) for p in params if isinstance(p, dict)] == ["conf/domain/${item}.yaml"]
+        assert stage["foreach"] == "${domains}"
+        assert "conf" not in stage["do"]["deps"]    # a change in one domain's file must not rerun the others
+        assert f"params=params.yaml domain=${{item}} phase={name}" in stage["do"]["cmd"]
+        assert "${data.prepared}" in stage["do"]["deps"]
+    assert declared["train"] | declared["evaluate"] == shared
+    assert shared - declared["train"] == {"evaluation"} and shared - declared["evaluate"] == {"trainer"}
+    assert "runs/${item}" in stages["evaluate"]["do"]["deps"] and "evaluations" in stages["report"]["deps"]
 
 
 def write_params(path: Path, values: dict) -> Path:
@@ -138,7 +146,8 @@ def test_the_pipeline_reruns_what_changed_and_runs_experiments(tmp_path):
     shell(repo, "git", "commit", "-qm", "pipeline", env=env)
 
     first = shell(repo, "dvc", "repro", env=env)
-    assert all(f"Running stage '{s}'" in first for s in ("generate", "check", "train@dsub", "train@pins", "report"))
+    assert all(f"Running stage '{s}'" in first for s in ("generate", "check", "preprocess", "train@dsub", "train@pins",
+                                                          "evaluate@dsub", "evaluate@pins", "report"))
     metrics = json.loads((repo / "reports" / "metrics.json").read_text())
     assert set(metrics) == {"dsub", "pins"} and "fit_F" in metrics["pins"]["test"]
     assert "| pins | PointNetVAE | MDS2 | 2 | pipe |" in (repo / "reports" / "results.md").read_text()
@@ -154,6 +163,10 @@ def test_the_pipeline_reruns_what_changed_and_runs_experiments(tmp_path):
     assert "train@pins" in status and "train@dsub" not in status and "generate" not in status
 
     shell(repo, "git", "checkout", "--", "conf", env=env)
+    shell(repo, "pipe", "params", *profile, "evaluation.blackbox_steps=10", env=env)   # an evaluation setting
+    status = shell(repo, "dvc", "status", env=env)
+    assert "evaluate@dsub" in status and "evaluate@pins" in status and "train@" not in status
+    shell(repo, "git", "checkout", "--", "params.yaml", env=env)
     shell(repo, "dvc", "exp", "run", *(f"-S{o}" for o in profile), "-Sencoder=dgcnn", env=env)
     assert "DGCNNVAE" in (repo / "runs" / "dsub" / "seed_0" / "config.yaml").read_text()
     shown = json.loads(shell(repo, "dvc", "exp", "show", "--json", env=env))

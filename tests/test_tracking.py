@@ -15,9 +15,11 @@ from conftest import ROOT, TINY_DOMAIN, smoke_config
 from mlflow.tracking import MlflowClient
 
 from pipe import pipeline as run_module
+from pipe.data.folders import dataset_version
 from pipe.errors import PipeError
 from pipe.pipeline import run_domain
-from pipe.tracking import dataset_version, flatten
+from pipe.predict import load_pytorch_flavor
+from pipe.tracking import flatten
 
 
 def test_a_domain_run_records_params_metrics_tags_artifacts_and_model(trained_run, tiny_data):
@@ -50,8 +52,6 @@ def test_a_domain_run_records_params_metrics_tags_artifacts_and_model(trained_ru
 @pytest.mark.parametrize("loader", ["mlflow.pytorch", "pipe.predict"])
 def test_the_logged_model_loads_and_predicts_like_the_trained_one(trained_run, uri, loader):
     """predict.py reads the pytorch flavor itself (without importing mlflow.pytorch); both give the model."""
-    from pipe.predict import load_pytorch_flavor
-
     uri = uri.format(run_id=trained_run.mlflow_run_id)
     model = mlflow.pytorch.load_model(uri, map_location="cpu") if loader == "mlflow.pytorch" \
         else load_pytorch_flavor(uri)
@@ -98,6 +98,58 @@ def test_resuming_into_a_deleted_or_unknown_run_is_refused_with_what_to_do(tiny_
                                             r".*mlflow runs restore.*delete this file"):
             run_domain(smoke_config(tiny_data, tmp_path, f"resume={run_dir}"))
         assert {r.info.run_id for r in MlflowClient().search_runs([experiment])} == before
+
+
+def test_the_train_and_evaluate_phases_log_into_one_run(tiny_data, tmp_path):
+    """DVC's train and evaluate stages: one MLflow run holds the training's curves and the evaluation's
+    metrics and model; an evaluation with other settings, or of a trained folder whose run the store lacks,
+    goes to a new run."""
+    extra = ("mlflow.experiment=phases", "mlflow.registered_model=null")
+    trained = run_domain(smoke_config(tiny_data, tmp_path / "t", "phase=train", *extra))
+    evaluated = run_domain(smoke_config(tiny_data, tmp_path / "e", "phase=evaluate", f"resume={tmp_path / 't'}",
+                                        *extra))
+    client = MlflowClient()
+    assert evaluated.mlflow_run_id == trained.mlflow_run_id
+    run = client.get_run(trained.mlflow_run_id)
+    assert run.info.status == "FINISHED" and "test/pipe/fit_F" in run.data.metrics
+    assert len(client.get_metric_history(run.info.run_id, "vae/train_loss")) == 2
+    assert "model_card.json" in {a.path for a in client.list_artifacts(run.info.run_id)}
+    model = load_pytorch_flavor(f"runs:/{run.info.run_id}/model")          # logged by the evaluation
+    assert torch.equal(model.theta_scale, evaluated.model.theta_scale)
+    assert len(client.search_runs([mlflow.get_experiment_by_name("phases").experiment_id])) == 1
+
+    # other evaluation settings: MLflow keeps a param's first value, so the evaluation gets a run of its own
+    changed = run_domain(smoke_config(tiny_data, tmp_path / "e2", "phase=evaluate", f"resume={tmp_path / 't'}",
+                                      "evaluation.blackbox_steps=10", *extra))
+    run = client.get_run(changed.mlflow_run_id)
+    assert changed.mlflow_run_id != trained.mlflow_run_id and run.data.tags["trained_run_id"] == trained.mlflow_run_id
+    assert run.data.params["evaluation.blackbox_steps"] == "10"
+    assert client.get_run(trained.mlflow_run_id).data.params["evaluation.blackbox_steps"] == "20"
+
+    client.delete_run(trained.mlflow_run_id)                    # a store without the training's run
+    again = run_domain(smoke_config(tiny_data, tmp_path / "e3", "phase=evaluate", f"resume={tmp_path / 't'}", *extra))
+    assert again.mlflow_run_id not in (trained.mlflow_run_id, changed.mlflow_run_id)
+    assert client.get_run(again.mlflow_run_id).data.metrics["test/pipe/fit_F"] == pytest.approx(
+        evaluated.pipe.domain["fit_F"])
+
+
+@pytest.mark.slow
+def test_seeds_trained_then_evaluated_keep_their_parent_and_child_runs(tiny_data, tmp_path):
+    from pipe.pipeline import run_seeds
+
+    extra = ("seeds=[0,1]", "mlflow.experiment=seed_phases", "mlflow.registered_model=null")
+    trained = run_seeds(smoke_config(tiny_data, tmp_path / "t", "phase=train", *extra))
+    assert not (tmp_path / "t" / "metrics.json").exists()
+    evaluated = run_seeds(smoke_config(tiny_data, tmp_path / "e", "phase=evaluate", f"resume={tmp_path / 't'}", *extra))
+    assert evaluated.mlflow_run_id == trained.mlflow_run_id
+    assert (tmp_path / "e" / "metrics.json").is_file() and (tmp_path / "e" / "seed_1" / "report").is_dir()
+    runs = MlflowClient().search_runs([mlflow.get_experiment_by_name("seed_phases").experiment_id])
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == trained.mlflow_run_id]
+    assert len(runs) == 3 and len(children) == 2
+    assert {r.info.status for r in runs} == {"FINISHED"}
+    assert all("test/pipe/fit_F" in c.data.metrics and "head/train_loss" in c.data.metrics for c in children)
+    parent = next(r for r in runs if r.info.run_id == trained.mlflow_run_id)
+    assert "test/pipe/fit_F_mean" in parent.data.metrics
 
 
 @pytest.mark.slow

@@ -241,3 +241,46 @@ def test_the_progress_bar_shows_steps_per_second(tmp_path):
     trainer.fit(Tiny(), torch.utils.data.DataLoader(torch.randn(12, 2), batch_size=4))
     assert bar.steps_per_second > 0
     assert float(bar.get_metrics(trainer, trainer.lightning_module)["steps/s"]) > 0
+
+
+def test_train_then_evaluate_is_one_run_in_two_and_reads_the_trained_folder_only(tiny_data, tmp_path):
+    """phase=train and phase=evaluate (DVC's two stages) give what one run gives; the evaluation writes into
+    its own folder, never into the trained one."""
+    from pipe.pipeline import TrainedRun
+
+    whole = run_domain(smoke_config(tiny_data, tmp_path / "all"))
+    trained = run_domain(smoke_config(tiny_data, tmp_path / "trained", "phase=train"))
+    assert isinstance(trained, TrainedRun) and set(trained.seconds) == {"vae", "head"}
+    assert not (tmp_path / "trained" / "metrics.json").exists() and not (tmp_path / "trained" / "report").exists()
+    files = {p: p.read_bytes() for p in (tmp_path / "trained").rglob("*") if p.is_file()}
+    evaluated = run_domain(smoke_config(tiny_data, tmp_path / "evaluated", "phase=evaluate",
+                                        f"resume={tmp_path / 'trained'}"))
+    assert {p: p.read_bytes() for p in (tmp_path / "trained").rglob("*") if p.is_file()} == files
+    assert {n: r.domain for n, r in evaluated.results.items()} == {n: r.domain for n, r in whole.results.items()}
+    assert set(evaluated.seconds) == {"vae", "head", "evaluation"} and evaluated.objective == whole.objective
+    for name in ("metrics.json", "report/results.json", "report/losses.csv", "report/forces.csv"):
+        assert (tmp_path / "evaluated" / name).is_file()
+    assert (tmp_path / "evaluated/report/losses.csv").read_text() == (tmp_path / "all/report/losses.csv").read_text()
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["phase=evaluate"], "name its folder with resume="),
+    (["phase=fit"], "unknown phase=fit; choose one of all, train, evaluate"),
+])
+def test_a_phase_without_what_it_needs_is_refused(tiny_data, tmp_path, overrides, message):
+    from pipe.errors import PipeError
+
+    with pytest.raises(PipeError, match=message):
+        run_domain(smoke_config(tiny_data, tmp_path, *overrides))
+
+
+def test_an_unfinished_training_is_not_evaluated(tiny_data, tmp_path):
+    from pipe.errors import PipeError
+
+    run_domain(smoke_config(tiny_data, tmp_path / "trained", "phase=train"))
+    with pytest.raises(PipeError, match="stage 'head' stopped after 2 of its 4 epochs"):
+        run_domain(smoke_config(tiny_data, tmp_path / "evaluated", "phase=evaluate", f"resume={tmp_path / 'trained'}",
+                                "stages.head.epochs=4"))
+    (tmp_path / "trained/checkpoints/vae/best.ckpt").unlink()
+    with pytest.raises(PipeError, match="has no trained stage 'vae'"):
+        run_domain(smoke_config(tiny_data, tmp_path / "evaluated", "phase=evaluate", f"resume={tmp_path / 'trained'}"))

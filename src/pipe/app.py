@@ -28,7 +28,7 @@ def _train(cfg: DictConfig) -> float | None:
 
     from pipe.cli import console, fail, say
     from pipe.errors import PipeError, debugging
-    from pipe.pipeline import results_rows, run_domain, run_seeds, spread_rows
+    from pipe.pipeline import TrainedRun, results_rows, run_domain, run_seeds, spread_rows
     from pipe.tracking import stop_on_signals, stopping_signal
 
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # device banners and tips, twice
@@ -47,6 +47,12 @@ def _train(cfg: DictConfig) -> float | None:
         say(f"stopped by {signal.Signals(signum).name}; continue with resume={cfg.resume or cfg.paths.output_dir}",
             "error")
         sys.exit(128 + signum)
+    if isinstance(result, TrainedRun):
+        seconds = result.seconds
+        console.print(f"{'mean per seed: ' if cfg.seeds is not None else ''}stage 1 {seconds['vae']:.0f} s, stage 2 "
+                      f"{seconds['head']:.0f} s; trained in {result.run_dir}; evaluate with the same options and "
+                      f"phase=evaluate resume={result.run_dir}", markup=False)
+        return result.objective
     title = (f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
              f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
     if cfg.seeds is not None:
@@ -60,8 +66,10 @@ def _train(cfg: DictConfig) -> float | None:
         table.add_row(*row)
     console.print(table)
     seconds = result.seconds
-    console.print(f"{'mean per seed: ' if cfg.seeds is not None else ''}stage 1 {seconds['vae']:.0f} s, stage 2 "
-                  f"{seconds['head']:.0f} s, evaluation {seconds['evaluation']:.0f} s; results in {result.run_dir}")
+    trained = (f"stage 1 {seconds['vae']:.0f} s, stage 2 {seconds['head']:.0f} s, " if "vae" in seconds
+               else "")   # phase=evaluate of a folder trained before training.json
+    console.print(f"{'mean per seed: ' if cfg.seeds is not None else ''}{trained}evaluation "
+                  f"{seconds['evaluation']:.0f} s; results in {result.run_dir}")
     if result.mlflow_run_id:
         model = "<a seed's run id, in seed_<k>/mlflow_run_id>" if cfg.seeds is not None else result.mlflow_run_id
         console.print(f"MLflow run {result.mlflow_run_id} (`mlflow ui` from the project root); predict with: "

@@ -1,4 +1,4 @@
-"""The `pipe` command line: `pipe data generate|import|check|pointcloud`, `pipe params`, `pipe report
+"""The `pipe` command line: `pipe data generate|import|check|pointcloud|preprocess`, `pipe params`, `pipe report
 curve|summary`."""
 
 from __future__ import annotations
@@ -121,6 +121,22 @@ def cmd_pointcloud(args: argparse.Namespace) -> int:
     if args.out:
         np.save(args.out, cloud.points)
         console.print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_preprocess(args: argparse.Namespace) -> int:
+    from importlib.resources import files
+
+    from omegaconf import OmegaConf
+
+    from pipe.data.prepared import PreprocessSettings, write_prepared
+
+    defaults = OmegaConf.load(files("pipe.conf").joinpath("data", "synthetic.yaml"))   # train.py's defaults
+    given = {name: getattr(args, name) for name in ("points", "cloud_seed", "rate_hz", "steady_samples")}
+    settings = PreprocessSettings.from_config({k: defaults[k] if v is None else v for k, v in given.items()})
+    parts = write_prepared(args.dataset, args.out, settings)
+    console.print(f"wrote {len(parts)} preprocessed parts of {args.dataset} to {args.out} ({settings}); train on "
+                  f"them with data.prepared={args.out}", markup=False)
     return 0
 
 
@@ -253,6 +269,17 @@ def build_parser() -> argparse.ArgumentParser:
     cloud.add_argument("--out", type=Path, help="write the points (n x 3, mm) as .npy")
     cloud.set_defaults(run=cmd_pointcloud)
 
+    prep = verbs.add_parser("preprocess", help="sample every part's cloud and resample its trials once, into a "
+                                               "folder that training reads with data.prepared=<folder>")
+    prep.add_argument("dataset", type=Path)
+    prep.add_argument("out", type=Path, help="output folder (preprocessed parts written there before are replaced)")
+    prep.add_argument("--points", type=int, help="points per cloud (default: train.py's data.points)")
+    prep.add_argument("--cloud-seed", type=int, help="seed of the cloud sampling (default: data.cloud_seed)")
+    prep.add_argument("--rate-hz", type=float, help="sample rate of the profiles (default: data.rate_hz)")
+    prep.add_argument("--steady-samples", type=int, help="copies of the final value appended (default: "
+                                                          "data.steady_samples)")
+    prep.set_defaults(run=cmd_preprocess)
+
     params = kinds.add_parser("params", help="compose the DVC pipeline's params.yaml from conf/, as `dvc exp run -S` "
                                              "does (after editing conf/)")
     params.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. encoder=dgcnn 'seeds=[0]'")
@@ -268,7 +295,8 @@ def build_parser() -> argparse.ArgumentParser:
     curve.set_defaults(run=cmd_curve)
     summary = report_verbs.add_parser("summary", help="one table over the domains of a pipeline's seeds runs, their "
                                                       "metrics and plot data (DVC's report stage)")
-    summary.add_argument("runs", type=Path, help="the folder of the domains' runs (runs/<domain>/results.json)")
+    summary.add_argument("runs", type=Path, help="the folder of the domains' evaluated runs "
+                                                 "(evaluations/<domain>/results.json)")
     summary.add_argument("--params", type=Path, help="summarise only the domains this params.yaml lists")
     summary.add_argument("--out", type=Path, required=True, help="folder for metrics.json, results.md and plots/")
     summary.set_defaults(run=cmd_summary)

@@ -20,8 +20,8 @@ CONFIG_MODULE = "pipe.conf"
 PIPELINE_CONFIG = "pipeline"          # conf/pipeline.yaml, as `.dvc/config` names it for DVC
 PARAMS_FILE = "params.yaml"
 PIPELINE_KEYS = ("domains",)          # the pipeline's own parameters: which domains `dvc repro` trains
-COMMAND_KEYS = ("domain", "paths", "params", "resume")   # from the command, never from the file
-COMMAND_OVERRIDES = ("domain=", "params=", "resume=", "hydra.", "hydra/")
+COMMAND_KEYS = ("domain", "paths", "params", "resume", "phase")   # from the command, never from the file
+COMMAND_OVERRIDES = ("domain=", "params=", "resume=", "phase=", "hydra.", "hydra/")
 
 
 def compose_params(out: Path, overrides: list[str]) -> None:

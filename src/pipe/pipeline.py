@@ -1,6 +1,12 @@
 """One domain run, start to end: ensure the dataset, prepare the domain, fit the VAE, fit the head,
 evaluate PIPE and the baselines on the test parts, and publish (metrics, report, MLflow, model card);
-with `seeds`, one such run per seed and the metrics' mean ± std over them."""
+with `seeds`, one such run per seed and the metrics' mean ± std over them.
+
+`phase` splits a run in two, as DVC's `train` and `evaluate` stages do: `train` fits both stages (checkpoints,
+loss logs, training.json, the MLflow run) and stops; `evaluate` loads the trained weights of the folder
+`resume=` names, without writing there, and evaluates, reports and logs into this run's own folder and the
+same MLflow run. `all` (the default) does both in one process, with the same results.
+"""
 
 from __future__ import annotations
 
@@ -23,6 +29,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pipe.data.batches import stack_clouds
+from pipe.data.folders import dataset_version
 from pipe.data.prepared import PartData, PreparedDomain, data_scales, prepare_domain
 from pipe.data.spec import SPEC_FILE
 from pipe.errors import PipeError
@@ -40,7 +47,6 @@ from pipe.model.vae import PointCloudVAE
 from pipe.synthetic import generate_dataset
 from pipe.tracking import (
     StageLogger,
-    dataset_version,
     dvc_dataset_tags,
     git_commit,
     log_outputs,
@@ -49,10 +55,14 @@ from pipe.tracking import (
     tracked_run,
 )
 from pipe.training.fit import fit_head, fit_vae
+from pipe.training.trainer import checkpoint_dir
 
 log = logging.getLogger(__name__)
 METRICS = ("fit_F", "fit_dF", "rms", "rms_rel")
 RUN_ID_FILE = "mlflow_run_id"   # in a run's folder: its MLflow run, which resume= continues
+TRAINING_FILE = "training.json"  # in a trained run's folder: each stage's wall time and stage 2's best loss
+PHASES = ("all", "train", "evaluate")
+STAGES = ("vae", "head")
 
 
 @dataclass
@@ -73,10 +83,26 @@ class RunResult:
     logvars: torch.Tensor | None = None    # the latent codes' log-variances, rows as latents
     objective: float | None = None         # stage 2's best monitored loss (validation, else training): a sweep's
                                            # objective, never a test metric
+    trained_dir: Path | None = None        # the folder of the checkpoints and loss logs (None: run_dir)
 
     @property
     def pipe(self) -> MethodResult:
         return self.results["pipe"]
+
+    @property
+    def logs_dir(self) -> Path:
+        return self.trained_dir or self.run_dir
+
+
+@dataclass
+class TrainedRun:
+    """A run of phase=train: both stages fitted, nothing evaluated yet."""
+
+    run_dir: Path
+    domain_name: str
+    seconds: dict[str, float]
+    objective: float | None
+    mlflow_run_id: str | None = None
 
 
 @dataclass
@@ -125,6 +151,14 @@ def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path) -> Path:
     return root
 
 
+def load_domain(cfg: DictConfig) -> PreparedDomain:
+    """The configured domain's parts, preprocessed, or read from `data.prepared` where it names a folder
+    (relative paths from the project root)."""
+    root = Path(cfg.paths.root)
+    prepared = root / cfg.data.prepared if cfg.data.get("prepared") else None
+    return prepare_domain(ensure_dataset(cfg.data, root), cfg.data, cfg.domain, prepared)
+
+
 def build_plugin(kind: str, node: DictConfig, base: type, **kwargs: Any) -> Any:
     """Instantiate one configured plugin and check it implements the interface the core expects."""
     target = node.get("_target_", "?")
@@ -161,20 +195,49 @@ def model_card(cfg: DictConfig, data: PreparedDomain, dynamics: DynamicModel, ba
                      band=BandCard(band.level, band.samples, band.seed, band_offset))
 
 
-def run_domain(cfg: DictConfig) -> RunResult:
-    """Train and evaluate one domain as configured; tracked as one MLflow run unless `mlflow.enabled` is off."""
+def check_phase(cfg: DictConfig) -> str:
+    """The configured phase, with what it needs: phase=evaluate evaluates the trained folder resume= names."""
+    phase = str(cfg.get("phase", "all"))
+    if phase not in PHASES:
+        raise PipeError(f"unknown phase={phase}; choose one of {', '.join(PHASES)}")
+    if phase == "evaluate" and cfg.resume is None:
+        raise PipeError("phase=evaluate evaluates a trained run: name its folder with resume=<folder>")
+    return phase
+
+
+def check_trained(cfg: DictConfig, folder: Path) -> None:
+    """Refuse to evaluate a folder whose stages have not run to their configured epochs."""
+    for stage in STAGES:
+        last, best = checkpoint_dir(folder, stage) / "last.ckpt", checkpoint_dir(folder, stage) / "best.ckpt"
+        if not (last.is_file() and best.is_file()):
+            raise PipeError(f"has no trained stage {stage!r} (checkpoints/{stage}/last.ckpt and best.ckpt); train it "
+                            f"first (phase=train, or resume= to finish it)", folder)
+        epoch = int(torch.load(last, map_location="cpu", mmap=True, weights_only=True)["epoch"])
+        wanted = int(cfg.stages[stage].epochs)
+        if epoch < wanted:
+            raise PipeError(f"stage {stage!r} stopped after {epoch} of its {wanted} epochs; finish it first with "
+                            f"phase=train resume={folder}", folder)
+
+
+def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
+    """Train and evaluate one domain as configured (or one `phase` of it); tracked as one MLflow run unless
+    `mlflow.enabled` is off."""
+    phase = check_phase(cfg)
     resume = cfg.resume is not None
-    run_dir = Path(cfg.resume or cfg.paths.output_dir)
-    if resume and not (run_dir / "checkpoints").is_dir():
+    trained_dir = Path(cfg.resume or cfg.paths.output_dir)       # the checkpoints' folder
+    run_dir = Path(cfg.paths.output_dir) if phase == "evaluate" else trained_dir   # where this run writes
+    if resume and not (trained_dir / "checkpoints").is_dir():
         raise PipeError("resume= names a folder without checkpoints; give the output folder of an earlier run",
-                        run_dir)
-    if not resume and any((run_dir / "checkpoints").glob("*/*.ckpt")):
+                        trained_dir)
+    if phase == "evaluate":
+        check_trained(cfg, trained_dir)
+    elif not resume and any((run_dir / "checkpoints").glob("*/*.ckpt")):
         raise PipeError("already holds the checkpoints of an earlier run; continue it with resume=<this folder> "
                         "or choose another hydra.run.dir", run_dir)
     ltv.set_backend(cfg.simulator)
     run_dir.mkdir(parents=True, exist_ok=True)
     L.seed_everything(cfg.seed, workers=True)
-    data = prepare_domain(ensure_dataset(cfg.data, Path(cfg.paths.root)), cfg.data, cfg.domain)
+    data = load_domain(cfg)
     encoder, head, dynamics = build_components(cfg)
     write_text_atomically(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     names = {kind: cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "head", "model")}
@@ -184,14 +247,24 @@ def run_domain(cfg: DictConfig) -> RunResult:
             **dvc_dataset_tags(data.dataset_dir)}
     tracking = cfg.mlflow.enabled
     run_name = f"{data.domain.name} {names['encoder']} {names['model']}"
-    id_file = run_dir / RUN_ID_FILE
+    id_file = trained_dir / RUN_ID_FILE
     resume_id = id_file.read_text().strip() if resume and tracking and id_file.is_file() else None
-    with tracked_run(cfg, run_name, tags, resume_id, id_file) if tracking else nullcontext() as active:
-        if tracking:
+    model = PIPEModel(encoder, head, dynamics, *data_scales(data.splits["train"]))
+    with tracked_run(cfg, run_name, tags, resume_id, id_file, evaluating=phase == "evaluate") if tracking \
+            else nullcontext() as active:
+        if tracking and phase != "evaluate":
             write_text_atomically(id_file, active.info.run_id + "\n")   # resume= continues this run
         loggers = [StageLogger(run_id=active.info.run_id, tracking_uri=mlflow.get_tracking_uri())] if tracking else []
-        run = train_and_evaluate(cfg, data, PIPEModel(encoder, head, dynamics, *data_scales(data.splits["train"])),
-                                 run_dir, resume, loggers)
+        if phase == "evaluate":
+            trained = load_trained(model, data, trained_dir)
+        else:
+            trained = train_stages(cfg, data, model, run_dir, resume, loggers)
+        if phase == "train":
+            if tracking:
+                mlflow.log_metrics({f"time/{stage}_s": seconds for stage, seconds in trained.seconds.items()})
+            return TrainedRun(run_dir, data.domain.name, trained.seconds, trained.objective,
+                              active.info.run_id if tracking else None)
+        run = evaluate_trained(cfg, data, model, trained, run_dir)
         if tracking:
             log_outputs(run, registered_model_name(cfg.mlflow.registered_model, data.domain.name))
             run.mlflow_run_id = active.info.run_id
@@ -203,29 +276,43 @@ def registered_model_name(pattern: str | None, domain: str) -> str | None:
     return pattern.replace("{domain}", domain) if pattern else None
 
 
-def seed_config(cfg: DictConfig, seed: int, out: Path) -> DictConfig:
-    """The config of one seed's run: its own folder `out/seed_<k>`, resumed when resuming and it has
-    checkpoints."""
-    folder = out / f"seed_{seed}"
+def seed_config(cfg: DictConfig, seed: int, out: Path, trained: Path) -> DictConfig:
+    """The config of one seed's run: its own folder `out/seed_<k>`, resumed from `trained/seed_<k>` when
+    resuming and that has checkpoints (phase=evaluate: always; `trained` is `out` but there)."""
+    folder, trained_folder = out / f"seed_{seed}", trained / f"seed_{seed}"
     sub = copy.deepcopy(cfg)
     with open_dict(sub):
         sub.seed, sub.seeds = seed, None
         sub.paths.output_dir = str(folder)
-        sub.resume = str(folder) if cfg.resume is not None and (folder / "checkpoints").is_dir() else None
+        resumable = cfg.resume is not None and (trained_folder / "checkpoints").is_dir()
+        sub.resume = str(trained_folder) if resumable or cfg.get("phase") == "evaluate" else None
     return sub
 
 
-def run_seeds(cfg: DictConfig) -> SeedsResult:
+def run_seeds(cfg: DictConfig) -> SeedsResult | TrainedRun:
     """`run_domain` once per seed of `cfg.seeds` (folders seed_<k> of the output folder), then every method's
     metrics as mean ± std over the seeds: metrics.json, results.json and results.md in the output folder,
-    and an MLflow parent run over the seeds' runs holding test/<method>/<metric>_mean and _std."""
+    and an MLflow parent run over the seeds' runs holding test/<method>/<metric>_mean and _std. With
+    phase=train the seeds are trained only (the parent run's id kept in the folder, for phase=evaluate)."""
     seeds = check_seeds(cfg.seeds)
-    out = Path(cfg.resume or cfg.paths.output_dir)
+    phase = check_phase(cfg)
+    trained = Path(cfg.resume or cfg.paths.output_dir)
+    out = Path(cfg.paths.output_dir) if phase == "evaluate" else trained
     names = " ".join(cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "model"))
     tags = {"domain": str(cfg.domain.name), "seeds": ",".join(map(str, seeds))}
-    with parent_run(cfg, f"{cfg.domain.name} {names} seeds {tags['seeds']}", tags) if cfg.mlflow.enabled \
-            else nullcontext() as parent:
-        runs = [run_domain(seed_config(cfg, seed, out)) for seed in seeds]
+    id_file = trained / RUN_ID_FILE
+    parent_id = id_file.read_text().strip() if cfg.resume is not None and id_file.is_file() else None
+    with parent_run(cfg, f"{cfg.domain.name} {names} seeds {tags['seeds']}", tags, parent_id, id_file,
+                    new_if_missing=phase == "evaluate") if cfg.mlflow.enabled else nullcontext() as parent:
+        if parent and phase != "evaluate":
+            trained.mkdir(parents=True, exist_ok=True)
+            write_text_atomically(id_file, parent + "\n")
+        runs = [run_domain(seed_config(cfg, seed, out, trained)) for seed in seeds]
+        if phase == "train":
+            mean = {stage: float(np.mean([run.seconds[stage] for run in runs])) for stage in runs[0].seconds}
+            objectives = [run.objective for run in runs]
+            return TrainedRun(out, runs[0].domain_name, mean,
+                              None if None in objectives else float(np.mean(objectives)), parent)
         result = SeedsResult(out, runs[0].domain_name, seeds, runs,
                              summarise([{name: r.domain for name, r in run.results.items()} for run in runs]), parent)
         write_seeds_results(result)
@@ -259,28 +346,72 @@ def write_seeds_results(result: SeedsResult) -> None:
                                                                           summary, reconstruction))
 
 
-def train_and_evaluate(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, run_dir: Path, resume: bool,
-                       loggers: list) -> RunResult:
-    """Both training stages, then PIPE and the baselines on the test parts, metrics.json and the report."""
-    train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
-    seconds = {"vae": fit_vae(cfg, model.encoder, train, val, run_dir, resume, loggers).seconds}
+@dataclass
+class Trained:
+    """What the evaluation needs of a training: the trained folder, the parts' latent distribution, each
+    stage's wall time and stage 2's best monitored loss."""
 
-    all_parts = train + val + test
-    index = {p.name: i for i, p in enumerate(all_parts)}
-    latents, logvars = model.latent_distribution(stack_clouds(all_parts))   # test clouds are only encoded
+    folder: Path
+    latents: torch.Tensor
+    logvars: torch.Tensor
+    index: dict[str, int]
+    seconds: dict[str, float]
+    objective: float | None
+
+
+def latent_codes(model: PIPEModel, data: PreparedDomain) -> tuple[torch.Tensor, torch.Tensor, dict[str, int]]:
+    """The mean codes and log-variances of all the domain's parts (test clouds are only encoded) and their rows."""
+    all_parts = data.splits["train"] + data.splits["val"] + data.splits["test"]
+    latents, logvars = model.latent_distribution(stack_clouds(all_parts))
+    return latents, logvars, {p.name: i for i, p in enumerate(all_parts)}
+
+
+def train_stages(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, run_dir: Path, resume: bool,
+                 loggers: list) -> Trained:
+    """Both training stages, leaving the best weights in `model`; training.json records their times."""
+    train, val = data.splits["train"], data.splits["val"]
+    seconds = {"vae": fit_vae(cfg, model.encoder, train, val, run_dir, resume, loggers).seconds}
+    latents, logvars, index = latent_codes(model, data)
     head = fit_head(cfg, model, latents, index, train, val, run_dir, resume, loggers)
     seconds["head"] = head.seconds
+    write_text_atomically(run_dir / TRAINING_FILE, json.dumps({"seconds": seconds, "objective": head.best}, indent=2)
+                          + "\n")
+    return Trained(run_dir, latents, logvars, index, seconds, head.best)
 
+
+def load_trained(model: PIPEModel, data: PreparedDomain, folder: Path) -> Trained:
+    """The best weights of a trained folder (stage 2's checkpoint holds the whole model) into `model`, read
+    only; the times and best loss from its training.json."""
+    best = checkpoint_dir(folder, "head") / "best.ckpt"
+    state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
+    try:
+        model.load_state_dict({key.removeprefix("model."): value for key, value in state.items()
+                               if key.startswith("model.")})
+    except RuntimeError as exc:
+        raise PipeError(f"does not fit this run's encoder, head and model (trained with other settings?): "
+                        f"{str(exc).splitlines()[0]}", best) from None
+    record = folder / TRAINING_FILE
+    recorded = json.loads(record.read_text()) if record.is_file() else {"seconds": {}, "objective": None}
+    latents, logvars, index = latent_codes(model, data)
+    return Trained(folder, latents, logvars, index, recorded["seconds"], recorded["objective"])
+
+
+def evaluate_trained(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, trained: Trained,
+                     run_dir: Path) -> RunResult:
+    """PIPE and the baselines on the test parts, metrics.json and the report, in `run_dir`."""
+    train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
     start = time.perf_counter()
     dt = 1.0 / cfg.data.rate_hz
-    ctx = EvalContext(model, latents, index, train, dt, cfg.seed, dict(cfg.evaluation), val=val, logvars=logvars)
+    ctx = EvalContext(model, trained.latents, trained.index, train, dt, cfg.seed, dict(cfg.evaluation), val=val,
+                      logvars=trained.logvars)
     results = evaluate_methods(ctx, test, ["pipe", *cfg.evaluation.baselines])
     reconstruction = reconstruction_metrics(model.encoder, test)
-    seconds["evaluation"] = time.perf_counter() - start
+    seconds = {**trained.seconds, "evaluation": time.perf_counter() - start}
     band = next(iter(results["pipe"].bands.values()))
-    run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, latents, index,
-                    test, dt, results, reconstruction, model_card(cfg, data, model.dynamics, band.offset), seconds,
-                    logvars=logvars, objective=head.best)
+    run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, trained.latents,
+                    trained.index, test, dt, results, reconstruction,
+                    model_card(cfg, data, model.dynamics, band.offset), seconds, logvars=trained.logvars,
+                    objective=trained.objective, trained_dir=None if trained.folder == run_dir else trained.folder)
     write_text_atomically(run_dir / "metrics.json", json.dumps(
         {"test": run.pipe.domain, "baselines": {n: r.domain for n, r in results.items() if n != "pipe"},
          "per_part": run.pipe.per_part, "reconstruction": reconstruction, "seconds": seconds}, indent=2) + "\n")

@@ -7,7 +7,7 @@ override it.
 
 from __future__ import annotations
 
-import hashlib
+import logging
 import os
 import signal
 import subprocess
@@ -34,6 +34,7 @@ from pipe.errors import PipeError
 from pipe.store import artifact_location, tracking_uri
 
 PARENT_RUN_ENV = "PIPE_MLFLOW_PARENT_RUN_ID"
+log = logging.getLogger(__name__)
 
 
 
@@ -55,15 +56,6 @@ def flatten(tree: Any, prefix: str = "") -> dict[str, str]:
             out |= flatten(value, f"{prefix}{key}.")
         return out
     return {prefix.rstrip("."): str(tree)}
-
-
-def dataset_version(root: Path) -> str:
-    """Content hash of a dataset folder: every file's path and bytes, in sorted order."""
-    digest = hashlib.sha256()
-    for path in sorted(p for p in root.rglob("*") if p.is_file()):
-        digest.update(path.relative_to(root).as_posix().encode())
-        digest.update(path.read_bytes())
-    return digest.hexdigest()[:16]
 
 
 def dvc_dataset_tags(root: Path) -> dict[str, str]:
@@ -140,16 +132,24 @@ def stopping_signal() -> int | None:
 
 
 @contextmanager
-def tracked_run(cfg: DictConfig, run_name: str, tags: dict[str, str],
-                resume_id: str | None = None, id_file: Path | None = None) -> Iterator[mlflow.ActiveRun]:
+def tracked_run(cfg: DictConfig, run_name: str, tags: dict[str, str], resume_id: str | None = None,
+                id_file: Path | None = None, evaluating: bool = False) -> Iterator[mlflow.ActiveRun]:
     """An MLflow run for one domain training: params and tags logged; FAILED if anything raises, KILLED
     on Ctrl-C or SIGTERM, FINISHED otherwise (never left RUNNING). Inside a multirun it is a child of the
     sweep's run. `resume_id`: continue that run (a resumed training, its id read from `id_file`), whose
-    params are already logged."""
+    params are already logged. `evaluating` (phase=evaluate): continue the training's run `resume_id` where
+    it can, else start a new one tagged `trained_run_id` (see `_not_continued`)."""
     experiment_id = use_experiment(cfg)
     parent = os.environ.get(PARENT_RUN_ENV)
+    reason = _not_continued(resume_id, cfg) if resume_id is not None and evaluating else None
+    if reason:
+        log.warning("the evaluation is logged to a new MLflow run: the training's run %s (%s) %s", resume_id,
+                    id_file, reason)
+        tags, resume_id = {**tags, "trained_run_id": resume_id}, None
     if resume_id is not None:
         _check_resumable(resume_id, id_file)
+        # MLflow refuses to continue a run of another experiment than the process's active one, if one was set
+        mlflow.set_experiment(experiment_id=MlflowClient().get_run(resume_id).info.experiment_id)
         run = mlflow.start_run(run_id=resume_id, tags=tags)
     else:
         run = mlflow.start_run(experiment_id=experiment_id, run_name=run_name, parent_run_id=parent, tags=tags)
@@ -168,12 +168,33 @@ def tracked_run(cfg: DictConfig, run_name: str, tags: dict[str, str],
     mlflow.end_run("FINISHED")
 
 
+def _lifecycle(run_id: str) -> str | None:
+    """"active" or "deleted" for a run the store holds, None for one it does not."""
+    try:
+        return MlflowClient().get_run(run_id).info.lifecycle_stage
+    except MlflowException:
+        return None
+
+
+def _resumable(run_id: str) -> bool:
+    return _lifecycle(run_id) == "active"
+
+
+def _not_continued(run_id: str, cfg: DictConfig) -> str | None:
+    """Why an evaluation cannot log into the training's run: the store does not hold it (a trained folder
+    restored by DVC beside another store), or it holds other `evaluation` settings (MLflow keeps a param's
+    first value: the run was evaluated before with them); None where it can."""
+    if not _resumable(run_id):
+        return f"is not in the store {mlflow.get_tracking_uri()}"
+    logged = MlflowClient().get_run(run_id).data.params
+    wanted = flatten({"evaluation": OmegaConf.to_container(cfg.evaluation, resolve=True)})
+    changed = sorted(key for key, value in wanted.items() if key in logged and logged[key] != value)
+    return f"holds other values of {', '.join(changed)}" if changed else None
+
+
 def _check_resumable(run_id: str, id_file: Path | None) -> None:
     """Refuse, with what to do, to resume into an MLflow run the store does not hold or holds as deleted."""
-    try:
-        state = MlflowClient().get_run(run_id).info.lifecycle_stage
-    except MlflowException:
-        state = None
+    state = _lifecycle(run_id)
     if state == "active":
         return
     problem = "was deleted" if state == "deleted" else "is not in it (another store, or deleted for good)"
@@ -183,17 +204,27 @@ def _check_resumable(run_id: str, id_file: Path | None) -> None:
                     "delete this file to continue the training in a new MLflow run", id_file)
 
 
-def open_parent_run(config: DictConfig, run_name: str, tags: dict[str, str]) -> tuple[str, str | None]:
+def open_parent_run(config: DictConfig, run_name: str, tags: dict[str, str], run_id: str | None = None,
+                    id_file: Path | None = None, new_if_missing: bool = False) -> tuple[str, str | None]:
     """A run that the domain runs started after it (`tracked_run`) join as children until `close_parent_run`;
-    itself a child of the enclosing parent if there is one (seeds inside a multirun). Its id, and the
-    enclosing parent's."""
+    itself a child of the enclosing parent if there is one (seeds inside a multirun). `run_id`: reopen that
+    run (seeds resumed or evaluated after their training, its id read from `id_file`; with `new_if_missing`
+    a new one where the store does not hold it). Its id, and the enclosing parent's."""
     experiment_id = use_experiment(config)
     enclosing = os.environ.get(PARENT_RUN_ENV)
-    if enclosing:
-        tags = {**tags, "mlflow.parentRunId": enclosing}
-    run = MlflowClient().create_run(experiment_id, run_name=run_name, tags=tags)
-    os.environ[PARENT_RUN_ENV] = run.info.run_id
-    return run.info.run_id, enclosing
+    if run_id is not None and new_if_missing and not _resumable(run_id):
+        log.warning("the MLflow run %s of %s is not in the store %s: the evaluation is logged to a new parent run",
+                    run_id, id_file, mlflow.get_tracking_uri())
+        run_id = None
+    if run_id is not None:
+        _check_resumable(run_id, id_file)
+        MlflowClient().update_run(run_id, status="RUNNING")
+    else:
+        if enclosing:
+            tags = {**tags, "mlflow.parentRunId": enclosing}
+        run_id = MlflowClient().create_run(experiment_id, run_name=run_name, tags=tags).info.run_id
+    os.environ[PARENT_RUN_ENV] = run_id
+    return run_id, enclosing
 
 
 def close_parent_run(run_id: str, enclosing: str | None, failed: bool = False) -> None:
@@ -207,9 +238,10 @@ def close_parent_run(run_id: str, enclosing: str | None, failed: bool = False) -
 
 
 @contextmanager
-def parent_run(cfg: DictConfig, run_name: str, tags: dict[str, str]) -> Iterator[str]:
+def parent_run(cfg: DictConfig, run_name: str, tags: dict[str, str], run_id: str | None = None,
+               id_file: Path | None = None, new_if_missing: bool = False) -> Iterator[str]:
     """`open_parent_run` for the duration of a block; FAILED if the block raises."""
-    run_id, enclosing = open_parent_run(cfg, run_name, tags)
+    run_id, enclosing = open_parent_run(cfg, run_name, tags, run_id, id_file, new_if_missing)
     try:
         yield run_id
     except BaseException:

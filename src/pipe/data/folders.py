@@ -1,8 +1,9 @@
-"""Writing a dataset folder all at once: built beside its destination, then renamed into place, so that a
-failed or interrupted run never leaves a half-written dataset that looks valid."""
+"""Dataset folders as a whole: written all at once (built beside their destination, then renamed into place, so
+that a failed or interrupted run never leaves a half-written folder that looks valid), and their content version."""
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 import tempfile
 from collections.abc import Callable
@@ -12,15 +13,25 @@ from pipe.data.spec import SPEC_FILE
 from pipe.errors import PipeError
 
 
-def check_replaceable(out: Path, what: str) -> None:
-    """Refuse an `out` that exists and is neither empty nor a dataset (`what` written there before)."""
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / SPEC_FILE).is_file())):
+def dataset_version(root: Path) -> str:
+    """Content hash of a dataset folder: every file's path and bytes, in sorted order."""
+    digest = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        digest.update(path.relative_to(root).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def check_replaceable(out: Path, what: str, marker: str = SPEC_FILE) -> None:
+    """Refuse an `out` that exists and is neither empty nor `what` written there before (a folder holding the
+    file `marker`)."""
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / marker).is_file())):
         raise PipeError(f"exists and is not {what}; choose an empty or new folder", out)
 
 
 def write_dataset_folder(out: Path, write: Callable[[Path], None]) -> Path:
     """Call `write(staging)` on a fresh folder beside `out`, then put it in the place of `out` (replacing an
-    earlier dataset there); on any error `out` is left as it was."""
+    earlier folder there); on any error `out` is left as it was."""
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:

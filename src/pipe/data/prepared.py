@@ -1,18 +1,48 @@
-"""The prepared domain: per part of a domain its centred point cloud and its preprocessed profiles."""
+"""The prepared domain: per part of a domain its centred point cloud and its preprocessed profiles, computed
+from the dataset as the paper does, or read from a folder of stored parts.
+
+Stored parts spare training the preprocessing of every run (DVC's `preprocess` stage, `pipe data preprocess
+DATASET OUT`; training reads them with `data.prepared=<folder>`). The folder holds `prepared.json` (the
+preprocessing settings, the content version of the dataset folder it was made from, its parts) and one
+`parts/<name>.npz` per part (numpy arrays only, read without pickle). It is written beside its destination and
+renamed into place, so a failed run leaves an earlier folder whole; a folder made with other settings or from
+another version of the dataset is refused by name, never read.
+"""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipe.data.dataset import StaticCurve, load_dataset
+from pipe.data.dataset import Part, StaticCurve, load_dataset
 from pipe.data.domain import SPLITS, Domain, domain_from_config, require_parts
-from pipe.data.preprocess import PointCloud, Profile, cloud_from_mesh, preprocess_trial
-from pipe.data.spec import load_spec
+from pipe.data.folders import check_replaceable, dataset_version, write_dataset_folder
+from pipe.data.preprocess import MeshInfo, PointCloud, Profile, cloud_from_mesh, preprocess_trial
+from pipe.data.spec import DatasetSpec, load_spec
+from pipe.errors import PipeError
+
+MANIFEST = "prepared.json"
+FORMAT = 1
+
+
+@dataclass(frozen=True)
+class PreprocessSettings:
+    """What decides a part's preprocessing (the `data` config's values of the same names)."""
+
+    points: int
+    cloud_seed: int
+    rate_hz: float
+    steady_samples: int
+
+    @classmethod
+    def from_config(cls, data_cfg: Mapping[str, Any]) -> PreprocessSettings:
+        return cls(int(data_cfg["points"]), int(data_cfg["cloud_seed"]), float(data_cfg["rate_hz"]),
+                   int(data_cfg["steady_samples"]))
 
 
 @dataclass(frozen=True)
@@ -32,25 +62,22 @@ class PreparedDomain:
     splits: dict[str, list[PartData]]
 
 
-def prepare_domain(root: str | Path, data_cfg: Mapping[str, Any], domain_cfg: Mapping[str, Any]) -> PreparedDomain:
-    """Load the domain's parts from the dataset at `root` and preprocess them as the paper does."""
+def prepare_domain(root: str | Path, data_cfg: Mapping[str, Any], domain_cfg: Mapping[str, Any],
+                   prepared: str | Path | None = None) -> PreparedDomain:
+    """The domain's parts of the dataset at `root`, preprocessed as the paper does, or read from the folder
+    `prepared` of stored parts (made from that dataset with the same settings)."""
     domain = domain_from_config(domain_cfg)
     root = Path(root)
     spec = load_spec(root)
     available = [p.name for p in (root / "parts").iterdir() if p.is_dir()] if (root / "parts").is_dir() else []
     require_parts(domain, available, root)
-    dataset = load_dataset(root, parts=list(domain.parts))
-    splits: dict[str, list[PartData]] = {}
-    for split in SPLITS:
-        splits[split] = []
-        for name in getattr(domain, split):
-            part = dataset.parts[name]
-            cloud = cloud_from_mesh(part.mesh_path, spec.mesh_units, int(data_cfg["points"]),
-                                    seed=int(data_cfg["cloud_seed"]), axis=part.metadata.get("axis", "z"))
-            profiles = [preprocess_trial(t, float(data_cfg["rate_hz"]), int(data_cfg["steady_samples"]))
-                        for t in part.trials]
-            splits[split].append(PartData(name, cloud, profiles, [t.static for t in part.trials]))
-    return PreparedDomain(domain, root, splits)
+    settings = PreprocessSettings.from_config(data_cfg)
+    if prepared is not None:
+        parts = read_prepared(Path(prepared), root, settings, list(domain.parts))
+    else:
+        dataset = load_dataset(root, parts=list(domain.parts))
+        parts = {name: prepare_part(part, spec, settings) for name, part in dataset.parts.items()}
+    return PreparedDomain(domain, root, {split: [parts[name] for name in getattr(domain, split)] for split in SPLITS})
 
 
 def data_scales(parts: list[PartData]) -> tuple[float, float]:
@@ -62,3 +89,94 @@ def profile_scales(profiles: list[Profile]) -> tuple[float, float]:
     """Typical force [N] and depth [mm] of these trials: means of their largest magnitudes."""
     return (float(np.mean([np.abs(p.force).max() for p in profiles])),
             float(np.mean([np.abs(p.depth).max() for p in profiles])))
+
+
+def prepare_part(part: Part, spec: DatasetSpec, settings: PreprocessSettings) -> PartData:
+    """A loaded part preprocessed as the paper does: its mesh sampled into a centred cloud, its trials resampled."""
+    cloud = cloud_from_mesh(part.mesh_path, spec.mesh_units, settings.points, seed=settings.cloud_seed,
+                            axis=part.metadata.get("axis", "z"))
+    profiles = [preprocess_trial(t, settings.rate_hz, settings.steady_samples) for t in part.trials]
+    return PartData(part.name, cloud, profiles, [t.static for t in part.trials])
+
+
+def _part_arrays(part: PartData) -> dict[str, np.ndarray]:
+    mesh = part.cloud.mesh
+    arrays = {"points": part.cloud.points, "centre": part.cloud.centre,
+              "centre_method": np.array(part.cloud.centre_method), "trials": np.array(len(part.profiles))}
+    if mesh is not None:
+        arrays |= {"mesh_units": np.array(mesh.units), "mesh_extent_mm": np.array(mesh.extent_mm),
+                   "mesh_watertight": np.array(mesh.watertight)}
+    for k, (profile, static) in enumerate(zip(part.profiles, part.static_curves)):
+        arrays |= {f"time_{k}": profile.time, f"depth_{k}": profile.depth, f"force_{k}": profile.force}
+        if profile.force_clean is not None:
+            arrays[f"force_clean_{k}"] = profile.force_clean
+        if static is not None:
+            arrays |= {f"static_depth_{k}": static.depth, f"static_force_{k}": static.force}
+    return arrays
+
+
+def _part_from_arrays(name: str, arrays: Mapping[str, np.ndarray]) -> PartData:
+    mesh = None
+    if "mesh_units" in arrays:
+        mesh = MeshInfo(str(arrays["mesh_units"]), float(arrays["mesh_extent_mm"]), bool(arrays["mesh_watertight"]))
+    cloud = PointCloud(arrays["points"], arrays["centre"], str(arrays["centre_method"]), mesh)
+    profiles, statics = [], []
+    for k in range(int(arrays["trials"])):
+        clean = arrays.get(f"force_clean_{k}")
+        profiles.append(Profile(arrays[f"time_{k}"], arrays[f"depth_{k}"], arrays[f"force_{k}"], clean))
+        statics.append(StaticCurve(arrays[f"static_depth_{k}"], arrays[f"static_force_{k}"])
+                       if f"static_depth_{k}" in arrays else None)
+    return PartData(name, cloud, profiles, statics)
+
+
+def write_prepared(dataset_dir: Path, out: Path, settings: PreprocessSettings) -> list[str]:
+    """Preprocess every part of the dataset into the folder `out` (replacing an earlier one); the parts' names."""
+    dataset_dir, out = Path(dataset_dir), Path(out)
+    check_replaceable(out, "a folder of preprocessed parts", MANIFEST)
+    dataset = load_dataset(dataset_dir)
+    version = dataset_version(dataset_dir)
+
+    def write(staging: Path) -> None:
+        (staging / "parts").mkdir()
+        for name, part in dataset.parts.items():
+            np.savez(staging / "parts" / f"{name}.npz", **_part_arrays(prepare_part(part, dataset.spec, settings)))
+        (staging / MANIFEST).write_text(json.dumps(
+            {"format": FORMAT, "settings": asdict(settings), "dataset": str(dataset_dir.resolve()),
+             "dataset_version": version, "parts": list(dataset.parts)}, indent=2) + "\n")
+
+    write_dataset_folder(out, write)
+    return list(dataset.parts)
+
+
+def read_prepared(folder: Path, dataset_dir: Path, settings: PreprocessSettings,
+                  names: list[str]) -> dict[str, PartData]:
+    """The named parts from a folder `write_prepared` made from this dataset with these settings."""
+    folder = Path(folder)
+    manifest_path = folder / MANIFEST
+    remake = (f"preprocess again: pipe data preprocess {dataset_dir} {folder} --points {settings.points} "
+              f"--cloud-seed {settings.cloud_seed} --rate-hz {settings.rate_hz:g} --steady-samples "
+              f"{settings.steady_samples} (or dvc repro), or set data.prepared=null")
+    if not manifest_path.is_file():
+        raise PipeError(f"data.prepared names a folder without {MANIFEST}; {remake}", folder)
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise PipeError(f"not valid JSON ({exc}); {remake}", manifest_path) from None
+    if manifest.get("format") != FORMAT or manifest.get("settings") != asdict(settings):
+        raise PipeError(f"was preprocessed with {manifest.get('settings')}, this run asks for {asdict(settings)}; "
+                        f"{remake}", manifest_path)
+    if manifest.get("dataset_version") != dataset_version(dataset_dir):
+        raise PipeError(f"was preprocessed from another version of the dataset {dataset_dir} (its files changed "
+                        f"since); {remake}", manifest_path)
+    missing = sorted(set(names) - set(manifest.get("parts", [])))
+    if missing:
+        raise PipeError(f"holds no preprocessed part(s) {missing}; {remake}", folder)
+    parts = {}
+    for name in names:
+        path = folder / "parts" / f"{name}.npz"
+        try:
+            with np.load(path, allow_pickle=False) as arrays:
+                parts[name] = _part_from_arrays(name, dict(arrays))
+        except (OSError, ValueError, KeyError) as exc:
+            raise PipeError(f"cannot be read ({type(exc).__name__}: {exc}); {remake}", path) from None
+    return parts

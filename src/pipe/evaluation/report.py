@@ -273,7 +273,7 @@ def write_report(run, out: Path) -> list[Path]:
     plot_forces(curves, fits, out / "forces.png")
     plot_theta(run.model, run.test, run.latents, run.index, out / "theta.png", run.logvars, run.card.band.settings)
     plot_clouds(run.model.encoder, run.test, out / "point_clouds.png")
-    losses = epoch_losses(run.run_dir)
+    losses = epoch_losses(run.logs_dir)
     write_losses(losses, out / "losses.csv")
     plot_losses(losses, out / "losses.png")
     return sorted(out.iterdir())

@@ -1,7 +1,7 @@
-"""One summary over the domains a pipeline trained (DVC's `report` stage: `pipe report summary runs`).
+"""One summary over the domains a pipeline evaluated (DVC's `report` stage: `pipe report summary evaluations`).
 
-Reads each domain's seeds run (`runs/<domain>/results.json` and `metrics.json`, as `train.py seeds=[...]`
-writes them) and writes, for git and DVC:
+Reads each domain's seeds run (`evaluations/<domain>/results.json` and `metrics.json`, as `train.py seeds=[...]`
+writes them, with or without phase=evaluate) and writes, for git and DVC:
 - metrics.json: per domain, PIPE's and the baselines' metrics as mean and std over the seeds
   (`dvc metrics show` / `dvc metrics diff`);
 - results.md: one table over domains, encoders and methods with PIPE's verdict against each, then each
