@@ -28,15 +28,13 @@ def main(run: str, overrides: list[str]) -> None:
     from omegaconf import OmegaConf
 
     import pipe.pipeline as pipeline
-    from pipe.evaluation.identification import identify_all
-    from pipe.evaluation.methods import METHODS
+    from pipe.evaluation.evaluate import available_methods, identify_for
 
     evaluate, record = pipeline.evaluate_methods, {}
 
     def one_at_a_time(ctx, test, names):
         start = time.perf_counter()         # every method's identifications at once, as the evaluation starts
-        methods = [METHODS[name]() for name in names]
-        identify_all(ctx, [r for m in methods if not m.unavailable(ctx, test) for r in m.identifications(ctx, test)])
+        identify_for(ctx, available_methods(ctx, test, names).values(), test)
         record["identification (all methods' starts)"] = {"seconds": round(time.perf_counter() - start, 2)}
         results = {}
         for name in names:

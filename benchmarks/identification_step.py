@@ -42,7 +42,14 @@ def main() -> None:
     from pipe.data.prepared import data_scales, profile_scales
     from pipe.data.preprocess import Profile
     from pipe.evaluation.context import EvalContext
-    from pipe.evaluation.identification import IdentificationSettings, StartJob, fit_jobs, fit_start, start_head
+    from pipe.evaluation.identification import (
+        IdentificationSettings,
+        StartJob,
+        fit_jobs,
+        fit_start,
+        part_jobs,
+        start_head,
+    )
     from pipe.model import ltv
     from pipe.model.losses import masked_mse
     from pipe.model.pipe_model import PIPEModel
@@ -104,14 +111,7 @@ def main() -> None:
     two = replace(settings, restarts=2)
 
     def start_jobs() -> list[StartJob]:
-        jobs_now = []
-        for part, trials in jobs:
-            part_batch = collate_trials([(0, p) for p in trials])
-            scales = ctx.model.dynamics.parameter_scales(*profile_scales(trials))
-            simulator = PIPEModel(None, ctx.model.head, ctx.model.dynamics).with_head(ctx.model.head, scales)
-            jobs_now += [StartJob(simulator, start_head(ctx.model.head, part.name, 0, k), part_batch, two)
-                         for k in range(two.restarts)]
-        return jobs_now
+        return [job for part, trials in jobs for job in part_jobs(ctx, part.name, trials, two)]
 
     print("\n| three parts, two starts each | seconds |")
     print("| --- | --- |")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,14 +57,12 @@ def score(method: Method, ctx: EvalContext, part: PartData, forces: list[np.ndar
     return mean_metrics([{k: r[k] for k in sorted(keys)} for r in rows]) | method.diagnostics(ctx, part)
 
 
-@torch.no_grad()
-def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -> dict[str, MethodResult]:
-    """Fit and score each named method (see `METHODS`) on the test parts; a method that cannot run on
-    them (`Method.unavailable`) is left out with a logged reason."""
+def available_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -> dict[str, Method]:
+    """The named methods (see `METHODS`) that can run on the test parts; the others (`Method.unavailable`)
+    are left out with a logged reason."""
     unknown = [n for n in names if n not in METHODS]
     if unknown:
         raise PipeError(f"unknown method(s) {unknown} in evaluation.baselines; available: {list(METHODS)}")
-    ctx.model.eval()
     methods = {}
     for name in names:
         method = METHODS[name]()
@@ -72,7 +71,20 @@ def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -
             log.info("%s left out: %s", name, reason)
         else:
             methods[name] = method
-    identify_all(ctx, [request for method in methods.values() for request in method.identifications(ctx, test)])
+    return methods
+
+
+def identify_for(ctx: EvalContext, methods: Iterable[Method], test: list[PartData]) -> None:
+    """Every system identification the methods will need (`Method.identifications`), fitted at once."""
+    identify_all(ctx, [request for method in methods for request in method.identifications(ctx, test)])
+
+
+@torch.no_grad()
+def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -> dict[str, MethodResult]:
+    """Fit and score each named method that can run on the test parts (`available_methods`)."""
+    ctx.model.eval()
+    methods = available_methods(ctx, test, names)
+    identify_for(ctx, methods.values(), test)
     results = {}
     for name, method in methods.items():
         method.fit(ctx)

@@ -235,6 +235,16 @@ def _stored(ctx: EvalContext, part: PartData, trials: list[Profile], target: str
                       stored["converged"]), None
 
 
+def part_jobs(ctx: EvalContext, name: str, trials: list[Profile], settings: IdentificationSettings) -> list[StartJob]:
+    """The starts of one part's identification: its trials in one batch, the dynamic model scaled by the part's
+    own recordings, one free head per start (`start_head`)."""
+    batch = collate_trials([(0, p) for p in trials])
+    scales = ctx.model.dynamics.parameter_scales(*profile_scales(trials))
+    simulator = PIPEModel(None, ctx.model.head, ctx.model.dynamics).with_head(ctx.model.head, scales)
+    return [StartJob(simulator, start_head(ctx.model.head, name, ctx.seed, start), batch, settings)
+            for start in range(settings.restarts)]
+
+
 def identify_all(ctx: EvalContext, requests: list[Request]) -> None:
     """Identify every requested part that the context's cache (and the folder `cache`) does not hold yet,
     all their starts at once, into the context's cache; `identify` then returns them."""
@@ -251,21 +261,14 @@ def identify_all(ctx: EvalContext, requests: list[Request]) -> None:
                 fits[part.name] = stored
             else:
                 pending.append(_Pending(fits, part, trials, settings, stored_as))
-    jobs, owners = [], []
-    for k, item in enumerate(pending):
-        batch = collate_trials([(0, p) for p in item.trials])
-        scales = ctx.model.dynamics.parameter_scales(*profile_scales(item.trials))
-        simulator = PIPEModel(None, ctx.model.head, ctx.model.dynamics).with_head(ctx.model.head, scales)
-        for start in range(item.settings.restarts):
-            head = start_head(ctx.model.head, item.part.name, ctx.seed, start)
-            jobs.append(StartJob(simulator, head, batch, item.settings))
-            owners.append(k)
+    jobs = [part_jobs(ctx, item.part.name, item.trials, item.settings) for item in pending]
     if not jobs:
         return
-    results = fit_jobs(jobs, _settings(ctx, None).workers or torch.get_num_threads())
-    for k, item in enumerate(pending):
-        starts = [(job, result) for job, result, owner in zip(jobs, results, owners) if owner == k]
-        job, (state, fit) = min(starts, key=lambda start: start[1][1].objective)
+    results = iter(fit_jobs([job for starts in jobs for job in starts], _settings(ctx, None).workers
+                            or torch.get_num_threads()))
+    for item, starts in zip(pending, jobs):
+        fitted = [(job, next(results)) for job in starts]
+        job, (state, fit) = min(fitted, key=lambda start: start[1][1].objective)
         job.head.load_state_dict(state)
         job.head.eval().requires_grad_(False)
         identified = Identified(ctx.model.with_head(job.head, job.model.theta_scale), fit.loss, fit.evaluations,
