@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -157,6 +158,27 @@ def test_starts_fitted_in_worker_processes_equal_those_fitted_here(ctx):
         torch.testing.assert_close(a.model.theta_scale, b.model.theta_scale, rtol=0, atol=0)
 
 
+class KillsItsWorker:
+    """Unpickled in a worker process, it ends that process at once, as an out-of-memory kill would."""
+
+    def __reduce__(self):
+        return (os._exit, (3,))
+
+
+@pytest.mark.timeout(300)
+def test_a_worker_process_that_dies_fails_the_fit_clearly_and_the_next_fit_works(ctx):
+    """A killed worker used to leave the evaluation waiting for ever (multiprocessing.Pool loses its task)."""
+    context, test = ctx
+    settings = identification.IdentificationSettings(restarts=2, max_evaluations=10)
+    trials = [Profile(p.time, p.depth, p.force) for p in test.profiles]
+    jobs = identification.part_jobs(context, test.name, trials, settings)
+    doomed = [jobs[0], jobs[1]._replace(head=KillsItsWorker())]
+    with pytest.raises(PipeError, match="ended without its result.*workers=1"):
+        identification.fit_jobs(doomed, 2)
+    fits = identification.fit_jobs(identification.part_jobs(context, test.name, trials, settings), 2)
+    assert [fit.evaluations for _, fit in fits] == [10, 10]
+
+
 def test_a_daemon_process_fits_its_starts_itself(ctx, monkeypatch):
     """Python forbids a daemon process to start processes (AssertionError "daemonic processes are not allowed
     to have children"): there the starts are fitted in the process itself, whatever `workers` says."""
@@ -170,7 +192,7 @@ def test_a_daemon_process_fits_its_starts_itself(ctx, monkeypatch):
         raise AssertionError("a daemon started processes")
 
     monkeypatch.setattr(identification.multiprocessing, "current_process", lambda: Daemon())
-    monkeypatch.setattr(identification.multiprocessing, "get_context", no_processes)
+    monkeypatch.setattr(identification, "Parallel", no_processes)
     assert identify(context, [*context.train, test])[0].evaluations == 20
 
 

@@ -41,7 +41,6 @@ import math
 import multiprocessing
 import os
 import pickle
-import signal
 import warnings
 import zlib
 from dataclasses import asdict, dataclass, replace
@@ -50,11 +49,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 import torch
+from joblib import Parallel, delayed
+from joblib.externals.loky.process_executor import TerminatedWorkerError
 
 from pipe.data.batches import TrialBatch, collate_trials
 from pipe.data.prepared import PartData, profile_scales
 from pipe.data.preprocess import Profile
-from pipe.errors import options_dataclass
+from pipe.errors import PipeError, options_dataclass
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.fit_cache import fit_key, load_fit, store_fit
 from pipe.model import ltv
@@ -170,26 +171,32 @@ def fit_job(job: StartJob) -> tuple[dict[str, torch.Tensor], StartFit]:
     return job.head.state_dict(), fit
 
 
-def _start_worker(backend: str) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)    # Ctrl-C: the launching process stops the pool
-    warnings.filterwarnings("ignore", message=".*TBB threading layer.*")   # shown once by the launching process
-    ltv.set_backend(backend)
-
-
-def _fit_pickled(job: bytes) -> bytes:
-    return pickle.dumps(fit_job(pickle.loads(job)))
+def _fit_pickled(job: bytes, backend: str) -> bytes:
+    """One job in a worker process, on the launching process's simulator backend."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*TBB threading layer.*")   # shown once by the launching process
+        ltv.set_backend(backend)
+        return pickle.dumps(fit_job(pickle.loads(job)))
 
 
 def fit_jobs(jobs: list[StartJob], workers: int) -> list[tuple[dict[str, torch.Tensor], StartFit]]:
-    """Every job's fit, in `workers` started processes (spawned: the compiled kernels' OpenMP thread pool is
-    not safe to fork) or, with one worker or one job, here. The jobs travel pickled with their tensors' data
-    (not through torch's shared memory, which the started processes of trainer=ddp had to work around)."""
+    """Every job's fit, in `workers` worker processes or, with one worker or one job, here. The workers are
+    joblib's loky processes: fresh interpreters (the compiled kernels' OpenMP thread pool is not safe to
+    fork), kept for the next call in this process (their start-up, about 3 s, is paid once), stopped on
+    Ctrl-C, and a worker that dies (killed, out of memory) fails the call instead of leaving it waiting. The
+    jobs travel pickled with their tensors' data (not through torch's shared memory, which the started
+    processes of trainer=ddp had to work around)."""
     if workers <= 1 or len(jobs) <= 1 or multiprocessing.current_process().daemon:   # a daemon starts none
         return [fit_job(job) for job in jobs]
-    context = multiprocessing.get_context("spawn")
-    with context.Pool(min(workers, len(jobs)), initializer=_start_worker, initargs=(ltv.get_backend(),)) as pool:
-        # terminated on leaving, also by an error or Ctrl-C
-        return [pickle.loads(fit) for fit in pool.imap(_fit_pickled, [pickle.dumps(job) for job in jobs])]
+    backend = ltv.get_backend()
+    try:
+        fits = Parallel(n_jobs=min(workers, len(jobs)), backend="loky", batch_size=1)(
+            delayed(_fit_pickled)(pickle.dumps(job), backend) for job in jobs)
+    except TerminatedWorkerError as error:
+        raise PipeError("a worker process fitting the system identification's starts ended without its result "
+                        f"({str(error).splitlines()[0]}): killed, or out of memory? Run again, with "
+                        "evaluation.identification.workers=1 to fit every start in this process") from None
+    return [pickle.loads(fit) for fit in fits]
 
 
 class _Pending(NamedTuple):
