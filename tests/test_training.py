@@ -274,6 +274,15 @@ def test_a_phase_without_what_it_needs_is_refused(tiny_data, tmp_path, overrides
         run_domain(smoke_config(tiny_data, tmp_path, *overrides))
 
 
+def test_a_trained_folder_of_other_settings_is_not_evaluated(tiny_data, tmp_path):
+    from pipe.errors import PipeError
+
+    run_domain(smoke_config(tiny_data, tmp_path / "trained", "phase=train"))
+    with pytest.raises(PipeError, match=r"best.ckpt: does not fit this run's encoder, head and model"):
+        run_domain(smoke_config(tiny_data, tmp_path / "evaluated", "phase=evaluate", f"resume={tmp_path / 'trained'}",
+                                "encoder.latent_dim=16"))
+
+
 def test_an_unfinished_training_is_not_evaluated(tiny_data, tmp_path):
     from pipe.errors import PipeError
 

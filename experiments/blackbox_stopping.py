@@ -1,0 +1,69 @@
+"""Why the blackbox baseline can fall below `mean` (issue 9: "a baseline below `mean` is investigated"): for
+finished run folders, the blackbox is fitted as the evaluation fits it, and at each of its validation checks
+(every 100 steps) its validation FIT(F), which chooses the step it keeps, is recorded with its test FIT(F),
+which only reports. One JSON line per run: the checks' steps, both curves, the kept step and the best test
+step. Results: docs/experiments.md. Usage (one thread, as the results were measured):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/blackbox_stopping.py OUT.jsonl runs/pins/seed_0 ...
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from common import load_encoder, load_run
+
+from pipe.data.batches import stack_clouds
+from pipe.data.prepared import data_scales
+from pipe.evaluation import methods
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import score
+from pipe.model.pipe_model import PIPEModel
+
+
+def curves(run: Path) -> dict:
+    cfg, data, (encoder, head, dynamics) = load_run(run)
+    load_encoder(encoder, run)
+    train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
+    model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+    parts = train + val + test
+    latents, logvars = model.latent_distribution(stack_clouds(parts))
+    ctx = EvalContext(model, latents, {p.name: i for i, p in enumerate(parts)}, train, 1.0 / cfg.data.rate_hz,
+                      cfg.seed, dict(cfg.evaluation), val=val, logvars=logvars)
+    validation, tested = [], []
+    checked = methods.validation_nmse
+
+    def recording(method, context):               # at every check: the test FIT beside the validation score
+        nmse = checked(method, context)
+        validation.append(100 * (1 - nmse))
+        tested.append(float(np.mean([score(method, context, part, method.predict(context, part))["fit_F"]
+                                     for part in test])))
+        return nmse
+
+    methods.validation_nmse = recording
+    try:
+        blackbox = methods.METHODS["blackbox"]()
+        blackbox.fit(ctx)
+    finally:
+        methods.validation_nmse = checked
+    steps = [min(k * blackbox.CHECK_EVERY, cfg.evaluation.blackbox_steps) for k in range(1, len(validation) + 1)]
+    return {"run": str(run), "steps": steps, "val_fit": validation, "test_fit": tested,
+            "kept_step": blackbox.best_step, "best_test_step": steps[int(np.argmax(tested))]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", help="JSON lines file to append to")
+    ap.add_argument("runs", nargs="+", help="finished seed folders of train.py")
+    args = ap.parse_args()
+    for run in args.runs:
+        row = curves(Path(run))
+        print(json.dumps({k: (np.round(v, 2).tolist() if isinstance(v, list) else v) for k, v in row.items()}),
+              flush=True)
+        with open(args.out, "a") as handle:
+            handle.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    main()
