@@ -4,6 +4,7 @@ refused by name when made with other settings or from another version of the dat
 from __future__ import annotations
 
 import shutil
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -53,6 +54,18 @@ def test_stored_parts_read_back_as_computed(tiny_copy, tmp_path):
         p.name for p in (tiny_copy / "parts").iterdir())
     assert_same_parts(prepare_domain(tiny_copy, data_cfg, domain_cfg),
                       prepare_domain(tiny_copy, data_cfg, domain_cfg, tmp_path / "prepared"))
+
+
+def test_the_folder_is_the_same_wherever_the_dataset_lies(tiny_copy, tmp_path):
+    """DVC hashes the folder: a checkout elsewhere, or a later run, must not make the stages after it run again."""
+    moved = Path(shutil.copytree(tiny_copy, tmp_path / "elsewhere" / "data"))
+    write_prepared(tiny_copy, tmp_path / "a", SETTINGS)
+    time.sleep(2.1)                                             # zip members carry a time to the 2 s
+    write_prepared(moved, tmp_path / "b", SETTINGS)
+    folders = [tmp_path / "a", tmp_path / "b"]
+    files = [sorted(p.relative_to(f) for p in f.rglob("*") if p.is_file()) for f in folders]
+    assert files[0] == files[1]
+    assert all((folders[0] / f).read_bytes() == (folders[1] / f).read_bytes() for f in files[0])
 
 
 def test_the_command_writes_what_training_reads(tiny_copy, tmp_path, capsys):

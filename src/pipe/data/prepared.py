@@ -12,6 +12,7 @@ another version of the dataset is refused by name, never read.
 from __future__ import annotations
 
 import json
+import zipfile
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -129,6 +130,15 @@ def _part_from_arrays(name: str, arrays: Mapping[str, np.ndarray]) -> PartData:
     return PartData(name, cloud, profiles, statics)
 
 
+def _save_arrays(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """`np.savez` with a fixed time on every member (savez stamps the clock): the same arrays give the same
+    bytes, so DVC's hash of the folder changes with its content only."""
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, array in arrays.items():
+            with archive.open(zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0)), "w") as member:
+                np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
+
+
 def write_prepared(dataset_dir: Path, out: Path, settings: PreprocessSettings) -> list[str]:
     """Preprocess every part of the dataset into the folder `out` (replacing an earlier one); the parts' names."""
     dataset_dir, out = Path(dataset_dir), Path(out)
@@ -139,10 +149,10 @@ def write_prepared(dataset_dir: Path, out: Path, settings: PreprocessSettings) -
     def write(staging: Path) -> None:
         (staging / "parts").mkdir()
         for name, part in dataset.parts.items():
-            np.savez(staging / "parts" / f"{name}.npz", **_part_arrays(prepare_part(part, dataset.spec, settings)))
+            _save_arrays(staging / "parts" / f"{name}.npz", _part_arrays(prepare_part(part, dataset.spec, settings)))
         (staging / MANIFEST).write_text(json.dumps(
-            {"format": FORMAT, "settings": asdict(settings), "dataset": str(dataset_dir.resolve()),
-             "dataset_version": version, "parts": list(dataset.parts)}, indent=2) + "\n")
+            {"format": FORMAT, "settings": asdict(settings), "dataset_version": version,
+             "parts": list(dataset.parts)}, indent=2) + "\n")     # no path: the same bytes in every checkout
 
     write_dataset_folder(out, write)
     return list(dataset.parts)
