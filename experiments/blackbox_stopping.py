@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 from common import load_encoder, load_run
 
-from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
 from pipe.evaluation import methods
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import score
 from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import latent_codes
 
 
 def curves(run: Path) -> dict:
@@ -27,10 +27,9 @@ def curves(run: Path) -> dict:
     load_encoder(encoder, run)
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
     model = PIPEModel(encoder, head, dynamics, *data_scales(train))
-    parts = train + val + test
-    latents, logvars = model.latent_distribution(stack_clouds(parts))
-    ctx = EvalContext(model, latents, {p.name: i for i, p in enumerate(parts)}, train, 1.0 / cfg.data.rate_hz,
-                      cfg.seed, dict(cfg.evaluation), val=val, logvars=logvars)
+    latents, logvars, index = latent_codes(model, data)
+    ctx = EvalContext(model, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed, dict(cfg.evaluation), val=val,
+                      logvars=logvars)
     validation, tested = [], []
     checked = methods.validation_nmse
 

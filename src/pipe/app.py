@@ -48,10 +48,8 @@ def _train(cfg: DictConfig) -> float | None:
             "error")
         sys.exit(128 + signum)
     if isinstance(result, TrainedRun):
-        seconds = result.seconds
-        console.print(f"{'mean per seed: ' if cfg.seeds is not None else ''}stage 1 {seconds['vae']:.0f} s, stage 2 "
-                      f"{seconds['head']:.0f} s; trained in {result.run_dir}; evaluate with the same options and "
-                      f"phase=evaluate resume={result.run_dir}", markup=False)
+        console.print(f"{wall_times(result.seconds, cfg.seeds is not None)}; trained in {result.run_dir}; evaluate "
+                      f"with the same options and phase=evaluate resume={result.run_dir}", markup=False)
         return result.objective
     title = (f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
              f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
@@ -65,16 +63,20 @@ def _train(cfg: DictConfig) -> float | None:
     for row in rows:
         table.add_row(*row)
     console.print(table)
-    seconds = result.seconds
-    trained = (f"stage 1 {seconds['vae']:.0f} s, stage 2 {seconds['head']:.0f} s, " if "vae" in seconds
-               else "")   # phase=evaluate of a folder trained before training.json
-    console.print(f"{'mean per seed: ' if cfg.seeds is not None else ''}{trained}evaluation "
-                  f"{seconds['evaluation']:.0f} s; results in {result.run_dir}")
+    console.print(f"{wall_times(result.seconds, cfg.seeds is not None)}; results in {result.run_dir}")
     if result.mlflow_run_id:
         model = "<a seed's run id, in seed_<k>/mlflow_run_id>" if cfg.seeds is not None else result.mlflow_run_id
         console.print(f"MLflow run {result.mlflow_run_id} (`mlflow ui` from the project root); predict with: "
                       f"python predict.py mesh=<part.stl> run={model}")
     return result.objective
+
+
+def wall_times(seconds: dict[str, float], seeds: bool) -> str:
+    """'stage 1 .. s, stage 2 .. s, evaluation .. s' for the steps a run timed (a folder trained before
+    training.json has no stage times)."""
+    names = {"vae": "stage 1", "head": "stage 2", "evaluation": "evaluation"}
+    timed = ", ".join(f"{label} {seconds[step]:.0f} s" for step, label in names.items() if step in seconds)
+    return f"mean per seed: {timed}" if seeds else timed
 
 
 def job_config(cfg: DictConfig) -> None:

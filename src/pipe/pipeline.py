@@ -29,7 +29,6 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pipe.data.batches import stack_clouds
-from pipe.data.folders import dataset_version
 from pipe.data.prepared import PartData, PreparedDomain, data_scales, prepare_domain
 from pipe.data.spec import SPEC_FILE
 from pipe.errors import PipeError
@@ -242,7 +241,7 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     write_text_atomically(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     names = {kind: cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "head", "model")}
     tags = {"domain": data.domain.name, **names, "git_commit": git_commit(Path(cfg.paths.root)),
-            "dataset": str(data.dataset_dir), "dataset_version": dataset_version(data.dataset_dir),
+            "dataset": str(data.dataset_dir), "dataset_version": data.dataset_version,
             "torch_threads": str(torch.get_num_threads()),
             **dvc_dataset_tags(data.dataset_dir)}
     tracking = cfg.mlflow.enabled

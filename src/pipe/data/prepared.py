@@ -60,6 +60,7 @@ class PartData:
 class PreparedDomain:
     domain: Domain
     dataset_dir: Path
+    dataset_version: str     # the dataset folder's content hash (`dataset_version`), read once per run
     splits: dict[str, list[PartData]]
 
 
@@ -73,12 +74,14 @@ def prepare_domain(root: str | Path, data_cfg: Mapping[str, Any], domain_cfg: Ma
     available = [p.name for p in (root / "parts").iterdir() if p.is_dir()] if (root / "parts").is_dir() else []
     require_parts(domain, available, root)
     settings = PreprocessSettings.from_config(data_cfg)
+    version = dataset_version(root)
     if prepared is not None:
-        parts = read_prepared(Path(prepared), root, settings, list(domain.parts))
+        parts = read_prepared(Path(prepared), root, version, settings, list(domain.parts))
     else:
         dataset = load_dataset(root, parts=list(domain.parts))
         parts = {name: prepare_part(part, spec, settings) for name, part in dataset.parts.items()}
-    return PreparedDomain(domain, root, {split: [parts[name] for name in getattr(domain, split)] for split in SPLITS})
+    return PreparedDomain(domain, root, version,
+                          {split: [parts[name] for name in getattr(domain, split)] for split in SPLITS})
 
 
 def data_scales(parts: list[PartData]) -> tuple[float, float]:
@@ -158,9 +161,10 @@ def write_prepared(dataset_dir: Path, out: Path, settings: PreprocessSettings) -
     return list(dataset.parts)
 
 
-def read_prepared(folder: Path, dataset_dir: Path, settings: PreprocessSettings,
+def read_prepared(folder: Path, dataset_dir: Path, version: str, settings: PreprocessSettings,
                   names: list[str]) -> dict[str, PartData]:
-    """The named parts from a folder `write_prepared` made from this dataset with these settings."""
+    """The named parts from a folder `write_prepared` made with these settings from the dataset at
+    `dataset_dir`, whose content version is `version`."""
     folder = Path(folder)
     manifest_path = folder / MANIFEST
     remake = (f"preprocess again: pipe data preprocess {dataset_dir} {folder} --points {settings.points} "
@@ -175,7 +179,7 @@ def read_prepared(folder: Path, dataset_dir: Path, settings: PreprocessSettings,
     if manifest.get("format") != FORMAT or manifest.get("settings") != asdict(settings):
         raise PipeError(f"was preprocessed with {manifest.get('settings')}, this run asks for {asdict(settings)}; "
                         f"{remake}", manifest_path)
-    if manifest.get("dataset_version") != dataset_version(dataset_dir):
+    if manifest.get("dataset_version") != version:
         raise PipeError(f"was preprocessed from another version of the dataset {dataset_dir} (its files changed "
                         f"since); {remake}", manifest_path)
     missing = sorted(set(names) - set(manifest.get("parts", [])))
