@@ -79,6 +79,48 @@ def test_compiled_discretisation_passes_gradcheck_from_mild_to_stiff():
         assert torch.autograd.gradcheck(lambda a, b: ltv._compiled().CompiledDiscretize.apply(a, b, 1e-3), inputs)
 
 
+def general_2x2(count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Dense 2 x 2 matrices of every kind (real, complex and repeated eigenvalues, stable or not) and inputs."""
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(count, 2, 2, generator=g, dtype=torch.float64) * 10.0 ** (4 * torch.rand(count, 1, 1, generator=g,
+                                                                                             dtype=torch.float64) - 1)
+    a[0] = torch.tensor([[-3.0, 1.0], [0.0, -3.0]])          # a Jordan block: q = 0, one eigenvalue twice
+    a[1] = torch.tensor([[0.0, 1.0], [-1e4, 0.0]])           # undamped: q < 0, eigenvalues +-100i
+    a[2] = torch.tensor([[0.0, 1.0], [0.0, 0.0]])            # nilpotent, det 0
+    return a, torch.randn(count, 2, generator=g, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("dt", [1e-3, 1e-2])
+def test_compiled_2x2_discretisation_matches_the_augmented_exponential(dt):
+    """The n = 2 kernels work in the algebra of I and N = X - tr(X)/2 I; torch.linalg.matrix_exp of the
+    augmented matrix is the independent reference, for any 2 x 2 matrix, not only mds2's companion form."""
+    a, b = general_2x2(200, seed=0)
+    phi, gamma = ltv._compiled().CompiledDiscretize.apply(a, b, dt)
+    expected_phi, expected_gamma = ltv.discretize_torch(a, b, dt)
+    scale = expected_phi.abs().amax((-2, -1))
+    assert ((phi - expected_phi).abs().amax((-2, -1)) <= 1e-12 * scale).all()
+    assert ((gamma - expected_gamma).abs().amax(-1) <= 1e-12 * (scale * b.abs().amax(-1) * dt)).all()
+
+
+def test_compiled_2x2_discretisation_passes_gradcheck_on_every_kind_of_matrix():
+    a, b = general_2x2(8, seed=1)
+    inputs = (a.requires_grad_(), b.requires_grad_())
+    assert torch.autograd.gradcheck(lambda a, b: ltv._compiled().CompiledDiscretize.apply(a, b, 1e-2), inputs)
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_compiled_discretisation_of_other_sizes_matches_and_passes_gradcheck(n):
+    """Models with other than two states take the generic kernels (scaling and squaring of the augmented
+    matrix)."""
+    g = torch.Generator().manual_seed(n)
+    a = torch.randn(2, 4, n, n, generator=g, dtype=torch.float64) * 30.0
+    b = torch.randn(2, 4, n, generator=g, dtype=torch.float64)
+    for got, expected in zip(ltv._compiled().CompiledDiscretize.apply(a, b, 1e-2), ltv.discretize_torch(a, b, 1e-2)):
+        assert (got - expected).abs().max() <= 1e-12 * expected.abs().max()
+    inputs = (a.requires_grad_(), b.requires_grad_())
+    assert torch.autograd.gradcheck(lambda a, b: ltv._compiled().CompiledDiscretize.apply(a, b, 1e-2), inputs)
+
+
 def test_compiled_recurrence_passes_gradcheck():
     g = torch.Generator().manual_seed(0)
     phi = (0.5 * torch.randn(2, 6, 3, 3, generator=g, dtype=torch.float64)).requires_grad_()

@@ -1,10 +1,12 @@
 """The compiled simulator: `pipe.model.ltv`'s discretisation and recurrence as numba kernels inside
 `torch.autograd.Function`s, with exact reverse-mode (adjoint) backward passes, also compiled.
 
-- `CompiledDiscretize`: A (N, n, n), B (N, n) -> Phi = exp(A dt), Gamma = int_0^dt exp(A s) ds B, as the
-  exponential of the augmented matrix M = dt [[A, B], [0, 0]] by scaling and squaring a degree-10 Taylor
-  polynomial (||M / 2^s||_1 <= 1/4, truncation below 1e-14 relative). Its backward is the exact adjoint of
-  that algorithm: the Horner steps and the squarings run in reverse.
+- `CompiledDiscretize`: A (N, n, n), B (N, n) -> Phi = exp(A dt), Gamma = int_0^dt exp(A s) ds B. For two
+  states (mds2) the kernels of `pipe.model.ltv_2x2` (scaling and squaring in the two-dimensional algebra of
+  I and A - tr(A)/2 I). For any other n, the exponential of the augmented matrix M = dt [[A, B], [0, 0]] by
+  scaling and squaring a degree-10 Taylor polynomial (||M / 2^s||_1 <= 1/4, truncation below 1e-14
+  relative); its backward is the exact adjoint of that algorithm: the Horner steps and the squarings run in
+  reverse.
 - `CompiledRecurrence`: x_{k+1} = Phi_k x_k + Gamma_k u_k from x_0 = 0. Its backward is the adjoint
   recurrence lambda_k = g_k + Phi_k^T lambda_{k+1}, which gives the gradients of Phi, Gamma and u.
 
@@ -19,6 +21,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 import torch
+
+from pipe.model.ltv_2x2 import discretize2_backward, discretize2_forward
 
 TAYLOR_DEGREE = 10
 THETA = 0.25          # ||M / 2^s||_1 bound: 0.25^11 / 11! ~ 6e-15 truncation
@@ -286,7 +290,7 @@ class CompiledDiscretize(torch.autograd.Function):
         n = a.shape[-1]
         a_np, b_np = _numpy(a).reshape(-1, n, n), _numpy(b).reshape(-1, n)
         phi, gamma = np.empty_like(a_np), np.empty_like(b_np)
-        discretize_forward(a_np, b_np, float(dt), phi, gamma)
+        (discretize2_forward if n == 2 else discretize_forward)(a_np, b_np, float(dt), phi, gamma)
         ctx.save_for_backward(a, b)
         ctx.dt = float(dt)
         return torch.from_numpy(phi).view(a.shape), torch.from_numpy(gamma).view(b.shape)
@@ -297,7 +301,7 @@ class CompiledDiscretize(torch.autograd.Function):
         n = a.shape[-1]
         a_np, b_np = _numpy(a).reshape(-1, n, n), _numpy(b).reshape(-1, n)
         grad_a, grad_b = np.empty_like(a_np), np.empty_like(b_np)
-        discretize_backward(a_np, b_np, ctx.dt, _numpy(grad_phi.to(a.dtype)).reshape(-1, n, n),
+        (discretize2_backward if n == 2 else discretize_backward)(a_np, b_np, ctx.dt, _numpy(grad_phi.to(a.dtype)).reshape(-1, n, n),
                             _numpy(grad_gamma.to(b.dtype)).reshape(-1, n), grad_a, grad_b)
         return torch.from_numpy(grad_a).view(a.shape), torch.from_numpy(grad_b).view(b.shape), None
 

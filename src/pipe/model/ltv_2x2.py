@@ -1,0 +1,182 @@
+"""The compiled discretisation of two-state models (n = 2, mds2's size) in the algebra of 2 x 2 matrices that
+commute with X = A dt: every power series in X is alpha I + beta N, with N = X - mu I, mu = tr(X) / 2, and
+N^2 = q I, q = ((x11 - x22) / 2)^2 + x12 x21 (Cayley-Hamilton). Two numbers per matrix instead of four.
+
+Phi = exp(X) and phi1(X) = sum_k X^k / (k + 1)! (Gamma = phi1(X) dt B) are computed by scaling and squaring
+in that algebra: Y = X / 2^s = m I + N' with |m| + sqrt|Q| (a bound of its spectral radius; N'^2 = Q I) at
+most THETA, Taylor polynomials of degree TAYLOR_DEGREE by Horner, then s squarings exp(2Y) = exp(Y)^2,
+phi1(2Y) = (exp(Y) + I) phi1(Y) / 2. Unlike the generic kernels (`pipe.model.ltv_numba`: the 1-norm of the
+augmented matrix [[X, B dt], [0, 0]]), the number of squarings follows the spectrum of X alone: mds2's
+companion matrix at conn's neutral profile has a 1-norm of 25 (7 squarings) and a spectral radius of 0.5
+(2 squarings); Gamma is linear in B, which needs no scaling.
+
+The result depends on X only through the two numbers (m, Q), so the backward carries their derivatives
+forward through the same Horner steps and squarings (forward mode: the exact derivative of this algorithm,
+no stored iterates) and contracts them with the incoming gradients. Samples run side by side, LANES at a
+time, each lane's values updated in place so that the loops vectorise. Sums in float64 whatever the tensors'
+dtype. Why by hand: no library offers a batched 2 x 2 exponential and phi1 with their derivatives, compiled.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+TAYLOR_DEGREE = 10
+THETA = 0.125         # |m| + sqrt|Q| of X / 2^s: truncation below 0.125^10 / 10! ~ 3e-16 relative
+MAX_SQUARINGS = 60
+LANES = 16            # samples side by side in the innermost loops
+CHUNK = 256           # samples per parallel task
+X12, X21, N11, M, Q, SCALE, SQUARINGS = range(7)     # rows of a block's `lanes`
+
+_jit = numba.njit(cache=True, fastmath=False, parallel=True)
+_jit_inline = numba.njit(cache=True, fastmath=False, inline="always")
+
+
+@_jit_inline
+def _load(a: np.ndarray, dt: float, first: int, lanes: np.ndarray) -> int:
+    """For items first.. (one per lane; a short last block repeats its last item) the rows of `lanes`: x12,
+    x21, n11 (N = [[n11, x12], [x21, -n11]]), m = mu / 2^s, Q = q / 4^s, 2^-s and s, the squarings that bring
+    |mu| + sqrt|q| to THETA. Returns the largest s."""
+    most = 0
+    for lane in range(LANES):
+        item = min(first + lane, a.shape[0] - 1)
+        x11, x12, x21, x22 = a[item, 0, 0] * dt, a[item, 0, 1] * dt, a[item, 1, 0] * dt, a[item, 1, 1] * dt
+        mu, n11 = 0.5 * (x11 + x22), 0.5 * (x11 - x22)
+        q = n11 * n11 + x12 * x21
+        radius = abs(mu) + np.sqrt(abs(q))
+        s = 0
+        while radius > THETA and s < MAX_SQUARINGS:
+            radius *= 0.5
+            s += 1
+        scale = 0.5 ** s
+        lanes[X12, lane], lanes[X21, lane], lanes[N11, lane] = x12, x21, n11
+        lanes[M, lane], lanes[Q, lane], lanes[SCALE, lane], lanes[SQUARINGS, lane] = mu * scale, q * scale * scale, scale, s
+        most = max(most, s)
+    return most
+
+
+@_jit_inline
+def _exponentials(lanes: np.ndarray, most: int, state: np.ndarray) -> None:
+    """state[0:4] = (p, r, g, h): exp(X) = p I + r N' and phi1(X) = g I + h N' of every lane. Horner from
+    (P, G) = (I, 0): P <- I + Y P / j, G <- (Y G + I) / j for j = d .. 1, then while i < s:
+    P <- P^2, G <- (P + I) G / 2, with (a, b)(c, d) = (a c + Q b d, a d + b c)."""
+    for lane in range(LANES):
+        state[0, lane], state[1, lane], state[2, lane], state[3, lane] = 1.0, 0.0, 0.0, 0.0
+    for j in range(TAYLOR_DEGREE, 0, -1):
+        inv = 1.0 / j
+        for lane in range(LANES):
+            m, big_q = lanes[M, lane], lanes[Q, lane]
+            p, r, g, h = state[0, lane], state[1, lane], state[2, lane], state[3, lane]
+            state[0, lane] = 1.0 + (m * p + big_q * r) * inv
+            state[1, lane] = (p + m * r) * inv
+            state[2, lane] = (m * g + big_q * h + 1.0) * inv
+            state[3, lane] = (g + m * h) * inv
+    for i in range(most):
+        for lane in range(LANES):
+            big_q, active = lanes[Q, lane], i < lanes[SQUARINGS, lane]
+            p, r, g, h = state[0, lane], state[1, lane], state[2, lane], state[3, lane]
+            state[0, lane] = p * p + big_q * r * r if active else p
+            state[1, lane] = 2.0 * p * r if active else r
+            state[2, lane] = 0.5 * ((p + 1.0) * g + big_q * r * h) if active else g
+            state[3, lane] = 0.5 * ((p + 1.0) * h + r * g) if active else h
+
+
+@_jit_inline
+def _exponentials_and_derivatives(lanes: np.ndarray, most: int, state: np.ndarray) -> None:
+    """`_exponentials` with the derivatives of (p, r, g, h) by m in state[4:8] and by Q in state[8:12],
+    carried through every step (forward mode)."""
+    for lane in range(LANES):
+        state[0, lane] = 1.0
+        for row in range(1, 12):
+            state[row, lane] = 0.0
+    for j in range(TAYLOR_DEGREE, 0, -1):
+        inv = 1.0 / j
+        for lane in range(LANES):
+            m, big_q = lanes[M, lane], lanes[Q, lane]
+            p, r, g, h = state[0, lane], state[1, lane], state[2, lane], state[3, lane]
+            pm, rm, gm, hm = state[4, lane], state[5, lane], state[6, lane], state[7, lane]
+            pq, rq, gq, hq = state[8, lane], state[9, lane], state[10, lane], state[11, lane]
+            state[0, lane] = 1.0 + (m * p + big_q * r) * inv
+            state[1, lane] = (p + m * r) * inv
+            state[2, lane] = (m * g + big_q * h + 1.0) * inv
+            state[3, lane] = (g + m * h) * inv
+            state[4, lane] = (p + m * pm + big_q * rm) * inv
+            state[5, lane] = (pm + r + m * rm) * inv
+            state[6, lane] = (g + m * gm + big_q * hm) * inv
+            state[7, lane] = (gm + h + m * hm) * inv
+            state[8, lane] = (m * pq + r + big_q * rq) * inv
+            state[9, lane] = (pq + m * rq) * inv
+            state[10, lane] = (m * gq + h + big_q * hq) * inv
+            state[11, lane] = (gq + m * hq) * inv
+    for i in range(most):
+        for lane in range(LANES):
+            if i < lanes[SQUARINGS, lane]:
+                big_q = lanes[Q, lane]
+                p, r, g, h = state[0, lane], state[1, lane], state[2, lane], state[3, lane]
+                for row in (4, 8):          # d/dm, then d/dQ (which also meets Q itself)
+                    dp, dr, dg, dh = state[row, lane], state[row + 1, lane], state[row + 2, lane], state[row + 3, lane]
+                    own = 1.0 if row == 8 else 0.0
+                    state[row, lane] = 2.0 * (p * dp + big_q * r * dr) + own * r * r
+                    state[row + 1, lane] = 2.0 * (dp * r + p * dr)
+                    state[row + 2, lane] = 0.5 * (dp * g + (p + 1.0) * dg + big_q * (dr * h + r * dh) + own * r * h)
+                    state[row + 3, lane] = 0.5 * (dp * h + (p + 1.0) * dh + dr * g + r * dg)
+                state[0, lane] = p * p + big_q * r * r
+                state[1, lane] = 2.0 * p * r
+                state[2, lane] = 0.5 * ((p + 1.0) * g + big_q * r * h)
+                state[3, lane] = 0.5 * ((p + 1.0) * h + r * g)
+
+
+@_jit
+def discretize2_forward(a: np.ndarray, b: np.ndarray, dt: float, phi: np.ndarray, gamma: np.ndarray) -> None:
+    """a (N, 2, 2), b (N, 2) -> phi = exp(a dt) (N, 2, 2), gamma = phi1(a dt) dt b (N, 2)."""
+    count = a.shape[0]
+    for chunk in numba.prange((count + CHUNK - 1) // CHUNK):
+        lanes, state = np.empty((7, LANES)), np.empty((4, LANES))
+        for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
+            _exponentials(lanes, _load(a, dt, first, lanes), state)
+            for lane in range(min(LANES, count - first)):
+                item = first + lane
+                x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
+                alpha, beta = state[0, lane], state[1, lane] * scale          # beta of N = 2^s N'
+                phi[item, 0, 0], phi[item, 0, 1] = alpha + beta * n11, beta * x12
+                phi[item, 1, 0], phi[item, 1, 1] = beta * x21, alpha - beta * n11
+                alpha, beta = state[2, lane] * dt, state[3, lane] * scale * dt
+                b1, b2 = b[item, 0], b[item, 1]
+                gamma[item, 0] = (alpha + beta * n11) * b1 + beta * x12 * b2
+                gamma[item, 1] = beta * x21 * b1 + (alpha - beta * n11) * b2
+
+
+@_jit
+def discretize2_backward(a: np.ndarray, b: np.ndarray, dt: float, grad_phi: np.ndarray, grad_gamma: np.ndarray,
+                         grad_a: np.ndarray, grad_b: np.ndarray) -> None:
+    """Gradients of a (N, 2, 2) and b (N, 2) from those of phi and gamma: Phi = p I + r 2^-s N and
+    Gamma = dt (g I + h 2^-s N) b give the gradients of (p, r, g, h), of N directly and of b; the
+    derivatives of (p, r, g, h) by m and Q give those of mu = 2^s m and q = 4^s Q, and with
+    mu = (x11 + x22) / 2, n11 = (x11 - x22) / 2, q = n11^2 + x12 x21 those of X = a dt."""
+    count = a.shape[0]
+    for chunk in numba.prange((count + CHUNK - 1) // CHUNK):
+        lanes, state = np.empty((7, LANES)), np.empty((12, LANES))
+        for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
+            _exponentials_and_derivatives(lanes, _load(a, dt, first, lanes), state)
+            for lane in range(min(LANES, count - first)):
+                item = first + lane
+                x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
+                f11, f12, f21, f22 = grad_phi[item, 0, 0], grad_phi[item, 0, 1], grad_phi[item, 1, 0], grad_phi[item, 1, 1]
+                g1, g2, b1, b2 = grad_gamma[item, 0], grad_gamma[item, 1], b[item, 0], b[item, 1]
+                beta_p, alpha_g, beta_g = state[1, lane] * scale, state[2, lane] * dt, state[3, lane] * scale * dt
+                grad_b[item, 0] = (alpha_g + beta_g * n11) * g1 + beta_g * x21 * g2
+                grad_b[item, 1] = beta_g * x12 * g1 + (alpha_g - beta_g * n11) * g2
+                bar_p = f11 + f22
+                bar_r = (n11 * (f11 - f22) + x12 * f12 + x21 * f21) * scale
+                bar_g = dt * (g1 * b1 + g2 * b2)
+                bar_h = dt * (n11 * (g1 * b1 - g2 * b2) + x12 * g1 * b2 + x21 * g2 * b1) * scale
+                bar_mu = scale * (bar_p * state[4, lane] + bar_r * state[5, lane] + bar_g * state[6, lane]
+                                  + bar_h * state[7, lane])
+                bar_q = scale * scale * (bar_p * state[8, lane] + bar_r * state[9, lane] + bar_g * state[10, lane]
+                                         + bar_h * state[11, lane])
+                bar_n11 = beta_p * (f11 - f22) + beta_g * (g1 * b1 - g2 * b2) + 2.0 * n11 * bar_q
+                grad_a[item, 0, 0] = 0.5 * (bar_mu + bar_n11) * dt
+                grad_a[item, 1, 1] = 0.5 * (bar_mu - bar_n11) * dt
+                grad_a[item, 0, 1] = (beta_p * f12 + beta_g * g1 * b2 + x21 * bar_q) * dt
+                grad_a[item, 1, 0] = (beta_p * f21 + beta_g * g2 * b1 + x12 * bar_q) * dt
