@@ -1,7 +1,10 @@
 """The simulator's backends side by side: forward + backward of `pipe.model.ltv.simulate` (discretisation
-and recurrence) and of the recurrence alone, the torch loop against the compiled kernels, at a long
-trajectory batch (10 x 2000 steps) and a whole conn epoch (120 x 400 steps), mds2 (n = 2), float32 as in
-training. Median of --repeats after a warm-up call (numba compiles, or loads its cache, on the first).
+and recurrence), of the discretisation and of the recurrence alone, the torch loop against the compiled
+kernels, at a long trajectory batch (10 x 2000 steps) and a whole conn epoch (120 x 400 steps), mds2 (n = 2),
+float32 as in training. "generic" is the compiled path with the two-state discretisation
+(`pipe.model.ltv_2x2`) swapped for the kernels of any size (`pipe.model.ltv_numba`, the augmented matrix),
+what mds2 ran before 2026-11-25. Median of --repeats after a warm-up call (numba compiles, or loads its
+cache, on the first).
 
     python benchmarks/simulator.py [--repeats 5] [--threads 2]
 """
@@ -14,7 +17,12 @@ import time
 
 import torch
 
-from pipe.model import ltv
+from pipe.model import ltv, ltv_numba
+
+# CompiledDiscretize looks its kernels up at each call, so swapping them here swaps what it runs
+TWO_STATE = (ltv_numba.discretize2_forward, ltv_numba.discretize2_backward)
+GENERIC = (lambda a, b, dt, degree, *out: ltv_numba.discretize_forward(a, b, dt, *out),    # no degree argument
+           lambda a, b, dt, degree, *grads: ltv_numba.discretize_backward(a, b, dt, *grads))
 
 
 def system(batch: int, steps: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -49,8 +57,8 @@ def main() -> None:
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     dt = 0.01
     print(f"threads {args.threads}, median of {args.repeats}, forward + backward, float32")
-    print("| case | part | torch loop | compiled | ratio |")
-    print("| --- | --- | --- | --- | --- |")
+    print("| case | part | torch loop | compiled, generic | compiled | ratio to the loop | ratio to generic |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for batch, steps in ((10, 2000), (120, 400)):
         a, b, u = system(batch, steps)
         with torch.no_grad():
@@ -63,12 +71,15 @@ def main() -> None:
         }
         for part, (fn, inputs) in parts.items():
             seconds = {}
-            for name in ("torch", "compiled"):
-                ltv.set_backend(name)
+            for name, backend, kernels in (("torch", "torch", TWO_STATE), ("generic", "compiled", GENERIC),
+                                           ("compiled", "compiled", TWO_STATE)):
+                ltv.set_backend(backend)
+                ltv_numba.discretize2_forward, ltv_numba.discretize2_backward = kernels
                 seconds[name] = timed(fn, inputs, args.repeats)
-            ratio = seconds["torch"] / seconds["compiled"]
-            print(f"| {batch} x {steps} | {part} | {seconds['torch'] * 1e3:.2f} ms | "
-                  f"{seconds['compiled'] * 1e3:.3f} ms | {ratio:.0f}x |")
+            ltv_numba.discretize2_forward, ltv_numba.discretize2_backward = TWO_STATE
+            torch_ms, generic_ms, compiled_ms = (seconds[name] * 1e3 for name in ("torch", "generic", "compiled"))
+            print(f"| {batch} x {steps} | {part} | {torch_ms:.2f} ms | {generic_ms:.3f} ms | {compiled_ms:.3f} ms | "
+                  f"{torch_ms / compiled_ms:.0f}x | {generic_ms / compiled_ms:.1f}x |")
     ltv.set_backend("auto")
 
 

@@ -102,6 +102,19 @@ def test_compiled_2x2_discretisation_matches_the_augmented_exponential(dt):
     assert ((gamma - expected_gamma).abs().amax(-1) <= 1e-12 * (scale * b.abs().amax(-1) * dt)).all()
 
 
+def test_compiled_2x2_float32_truncates_below_its_rounding():
+    """float32 takes a lower Taylor degree (ltv_2x2.DEGREE_2X2): against the float64 kernels on the same
+    float32 inputs, only the output's rounding may differ (2^-24 relative, here 3 ulp of the largest entry)."""
+    a, b = general_2x2(500, seed=2)
+    a, b = a.float(), b.float()
+    for dt in (1e-3, 1e-2):
+        got = ltv._compiled().CompiledDiscretize.apply(a, b, dt)
+        expected = ltv._compiled().CompiledDiscretize.apply(a.double(), b.double(), dt)
+        for g, e in zip(got, expected):
+            scale = e.abs().flatten(1).amax(1).view(-1, *[1] * (e.dim() - 1))
+            assert ((g.double() - e).abs() <= 3 * 2.0**-24 * scale).all()
+
+
 def test_compiled_2x2_discretisation_passes_gradcheck_on_every_kind_of_matrix():
     a, b = general_2x2(8, seed=1)
     inputs = (a.requires_grad_(), b.requires_grad_())

@@ -4,9 +4,9 @@ N^2 = q I, q = ((x11 - x22) / 2)^2 + x12 x21 (Cayley-Hamilton). Two numbers per 
 
 Phi = exp(X) and phi1(X) = sum_k X^k / (k + 1)! (Gamma = phi1(X) dt B) are computed by scaling and squaring
 in that algebra: Y = X / 2^s = m I + N' with |m| + sqrt|Q| (a bound of its spectral radius; N'^2 = Q I) at
-most THETA, Taylor polynomials of degree TAYLOR_DEGREE by Horner, then s squarings exp(2Y) = exp(Y)^2,
-phi1(2Y) = (exp(Y) + I) phi1(Y) / 2. Unlike the generic kernels (`pipe.model.ltv_numba`: the 1-norm of the
-augmented matrix [[X, B dt], [0, 0]]), the number of squarings follows the spectrum of X alone: mds2's
+most THETA, Taylor polynomials by Horner (of a degree that truncates below the dtype's rounding), then s
+squarings exp(2Y) = exp(Y)^2, phi1(2Y) = (exp(Y) + I) phi1(Y) / 2. Unlike the generic kernels
+(`pipe.model.ltv_numba`: the 1-norm of the augmented matrix [[X, B dt], [0, 0]]), the number of squarings follows the spectrum of X alone: mds2's
 companion matrix at conn's neutral profile has a 1-norm of 25 (7 squarings) and a spectral radius of 0.5
 (2 squarings); Gamma is linear in B, which needs no scaling.
 
@@ -22,8 +22,11 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-TAYLOR_DEGREE = 10
-THETA = 0.125         # |m| + sqrt|Q| of X / 2^s: truncation below 0.125^10 / 10! ~ 3e-16 relative
+THETA = 0.125         # |m| + sqrt|Q| of X / 2^s at most
+# Taylor degree per dtype, its truncation (a relative backward error of Y, which the squarings keep) below
+# the dtype's rounding: about 0.125^10 / 10! ~ 3e-16 for float64, 7 * 0.125^6 / 7! ~ 5e-9 for float32 (rounding
+# 6e-8); the sums run in float64 either way.
+DEGREE_2X2 = {np.dtype(np.float64): 10, np.dtype(np.float32): 6}
 MAX_SQUARINGS = 60
 LANES = 16            # samples side by side in the innermost loops
 CHUNK = 256           # samples per parallel task
@@ -51,19 +54,20 @@ def _load(a: np.ndarray, dt: float, first: int, lanes: np.ndarray) -> int:
             s += 1
         scale = 0.5 ** s
         lanes[X12, lane], lanes[X21, lane], lanes[N11, lane] = x12, x21, n11
-        lanes[M, lane], lanes[Q, lane], lanes[SCALE, lane], lanes[SQUARINGS, lane] = mu * scale, q * scale * scale, scale, s
+        lanes[M, lane], lanes[Q, lane] = mu * scale, q * scale * scale
+        lanes[SCALE, lane], lanes[SQUARINGS, lane] = scale, s
         most = max(most, s)
     return most
 
 
 @_jit_inline
-def _exponentials(lanes: np.ndarray, most: int, state: np.ndarray) -> None:
+def _exponentials(lanes: np.ndarray, most: int, degree: int, state: np.ndarray) -> None:
     """state[0:4] = (p, r, g, h): exp(X) = p I + r N' and phi1(X) = g I + h N' of every lane. Horner from
     (P, G) = (I, 0): P <- I + Y P / j, G <- (Y G + I) / j for j = d .. 1, then while i < s:
     P <- P^2, G <- (P + I) G / 2, with (a, b)(c, d) = (a c + Q b d, a d + b c)."""
     for lane in range(LANES):
         state[0, lane], state[1, lane], state[2, lane], state[3, lane] = 1.0, 0.0, 0.0, 0.0
-    for j in range(TAYLOR_DEGREE, 0, -1):
+    for j in range(degree, 0, -1):
         inv = 1.0 / j
         for lane in range(LANES):
             m, big_q = lanes[M, lane], lanes[Q, lane]
@@ -83,14 +87,14 @@ def _exponentials(lanes: np.ndarray, most: int, state: np.ndarray) -> None:
 
 
 @_jit_inline
-def _exponentials_and_derivatives(lanes: np.ndarray, most: int, state: np.ndarray) -> None:
+def _exponentials_and_derivatives(lanes: np.ndarray, most: int, degree: int, state: np.ndarray) -> None:
     """`_exponentials` with the derivatives of (p, r, g, h) by m in state[4:8] and by Q in state[8:12],
     carried through every step (forward mode)."""
     for lane in range(LANES):
         state[0, lane] = 1.0
         for row in range(1, 12):
             state[row, lane] = 0.0
-    for j in range(TAYLOR_DEGREE, 0, -1):
+    for j in range(degree, 0, -1):
         inv = 1.0 / j
         for lane in range(LANES):
             m, big_q = lanes[M, lane], lanes[Q, lane]
@@ -111,30 +115,33 @@ def _exponentials_and_derivatives(lanes: np.ndarray, most: int, state: np.ndarra
             state[11, lane] = (gq + m * hq) * inv
     for i in range(most):
         for lane in range(LANES):
-            if i < lanes[SQUARINGS, lane]:
-                big_q = lanes[Q, lane]
-                p, r, g, h = state[0, lane], state[1, lane], state[2, lane], state[3, lane]
-                for row in (4, 8):          # d/dm, then d/dQ (which also meets Q itself)
-                    dp, dr, dg, dh = state[row, lane], state[row + 1, lane], state[row + 2, lane], state[row + 3, lane]
-                    own = 1.0 if row == 8 else 0.0
-                    state[row, lane] = 2.0 * (p * dp + big_q * r * dr) + own * r * r
-                    state[row + 1, lane] = 2.0 * (dp * r + p * dr)
-                    state[row + 2, lane] = 0.5 * (dp * g + (p + 1.0) * dg + big_q * (dr * h + r * dh) + own * r * h)
-                    state[row + 3, lane] = 0.5 * (dp * h + (p + 1.0) * dh + dr * g + r * dg)
-                state[0, lane] = p * p + big_q * r * r
-                state[1, lane] = 2.0 * p * r
-                state[2, lane] = 0.5 * ((p + 1.0) * g + big_q * r * h)
-                state[3, lane] = 0.5 * ((p + 1.0) * h + r * g)
+            big_q, active = lanes[Q, lane], i < lanes[SQUARINGS, lane]
+            p, r, g, h = state[0, lane], state[1, lane], state[2, lane], state[3, lane]
+            pm, rm, gm, hm = state[4, lane], state[5, lane], state[6, lane], state[7, lane]
+            pq, rq, gq, hq = state[8, lane], state[9, lane], state[10, lane], state[11, lane]
+            state[0, lane] = p * p + big_q * r * r if active else p
+            state[1, lane] = 2.0 * p * r if active else r
+            state[2, lane] = 0.5 * ((p + 1.0) * g + big_q * r * h) if active else g
+            state[3, lane] = 0.5 * ((p + 1.0) * h + r * g) if active else h
+            state[4, lane] = 2.0 * (p * pm + big_q * r * rm) if active else pm
+            state[5, lane] = 2.0 * (pm * r + p * rm) if active else rm
+            state[6, lane] = 0.5 * (pm * g + (p + 1.0) * gm + big_q * (rm * h + r * hm)) if active else gm
+            state[7, lane] = 0.5 * (pm * h + (p + 1.0) * hm + rm * g + r * gm) if active else hm
+            state[8, lane] = 2.0 * (p * pq + big_q * r * rq) + r * r if active else pq     # Q meets Q itself too
+            state[9, lane] = 2.0 * (pq * r + p * rq) if active else rq
+            state[10, lane] = 0.5 * (pq * g + (p + 1.0) * gq + big_q * (rq * h + r * hq) + r * h) if active else gq
+            state[11, lane] = 0.5 * (pq * h + (p + 1.0) * hq + rq * g + r * gq) if active else hq
 
 
 @_jit
-def discretize2_forward(a: np.ndarray, b: np.ndarray, dt: float, phi: np.ndarray, gamma: np.ndarray) -> None:
+def discretize2_forward(a: np.ndarray, b: np.ndarray, dt: float, degree: int, phi: np.ndarray,
+                        gamma: np.ndarray) -> None:
     """a (N, 2, 2), b (N, 2) -> phi = exp(a dt) (N, 2, 2), gamma = phi1(a dt) dt b (N, 2)."""
     count = a.shape[0]
     for chunk in numba.prange((count + CHUNK - 1) // CHUNK):
         lanes, state = np.empty((7, LANES)), np.empty((4, LANES))
         for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
-            _exponentials(lanes, _load(a, dt, first, lanes), state)
+            _exponentials(lanes, _load(a, dt, first, lanes), degree, state)
             for lane in range(min(LANES, count - first)):
                 item = first + lane
                 x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
@@ -148,8 +155,8 @@ def discretize2_forward(a: np.ndarray, b: np.ndarray, dt: float, phi: np.ndarray
 
 
 @_jit
-def discretize2_backward(a: np.ndarray, b: np.ndarray, dt: float, grad_phi: np.ndarray, grad_gamma: np.ndarray,
-                         grad_a: np.ndarray, grad_b: np.ndarray) -> None:
+def discretize2_backward(a: np.ndarray, b: np.ndarray, dt: float, degree: int, grad_phi: np.ndarray,
+                         grad_gamma: np.ndarray, grad_a: np.ndarray, grad_b: np.ndarray) -> None:
     """Gradients of a (N, 2, 2) and b (N, 2) from those of phi and gamma: Phi = p I + r 2^-s N and
     Gamma = dt (g I + h 2^-s N) b give the gradients of (p, r, g, h), of N directly and of b; the
     derivatives of (p, r, g, h) by m and Q give those of mu = 2^s m and q = 4^s Q, and with
@@ -158,11 +165,12 @@ def discretize2_backward(a: np.ndarray, b: np.ndarray, dt: float, grad_phi: np.n
     for chunk in numba.prange((count + CHUNK - 1) // CHUNK):
         lanes, state = np.empty((7, LANES)), np.empty((12, LANES))
         for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
-            _exponentials_and_derivatives(lanes, _load(a, dt, first, lanes), state)
+            _exponentials_and_derivatives(lanes, _load(a, dt, first, lanes), degree, state)
             for lane in range(min(LANES, count - first)):
                 item = first + lane
                 x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
-                f11, f12, f21, f22 = grad_phi[item, 0, 0], grad_phi[item, 0, 1], grad_phi[item, 1, 0], grad_phi[item, 1, 1]
+                f11, f12 = grad_phi[item, 0, 0], grad_phi[item, 0, 1]
+                f21, f22 = grad_phi[item, 1, 0], grad_phi[item, 1, 1]
                 g1, g2, b1, b2 = grad_gamma[item, 0], grad_gamma[item, 1], b[item, 0], b[item, 1]
                 beta_p, alpha_g, beta_g = state[1, lane] * scale, state[2, lane] * dt, state[3, lane] * scale * dt
                 grad_b[item, 0] = (alpha_g + beta_g * n11) * g1 + beta_g * x21 * g2

@@ -22,7 +22,7 @@ import numba
 import numpy as np
 import torch
 
-from pipe.model.ltv_2x2 import discretize2_backward, discretize2_forward
+from pipe.model.ltv_2x2 import DEGREE_2X2, discretize2_backward, discretize2_forward
 
 TAYLOR_DEGREE = 10
 THETA = 0.25          # ||M / 2^s||_1 bound: 0.25^11 / 11! ~ 6e-15 truncation
@@ -283,14 +283,19 @@ def _numpy(t: torch.Tensor) -> np.ndarray:
 
 
 class CompiledDiscretize(torch.autograd.Function):
-    """(A (..., n, n), B (..., n), dt) -> (Phi, Gamma), as `pipe.model.ltv.discretize`, compiled."""
+    """(A (..., n, n), B (..., n), dt) -> (Phi, Gamma), as `pipe.model.ltv.discretize`, compiled: the two-state
+    kernels for n = 2, with a Taylor degree that truncates below the dtype's rounding (`DEGREE_2X2`), the
+    generic ones otherwise."""
 
     @staticmethod
     def forward(ctx, a: torch.Tensor, b: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
         n = a.shape[-1]
         a_np, b_np = _numpy(a).reshape(-1, n, n), _numpy(b).reshape(-1, n)
         phi, gamma = np.empty_like(a_np), np.empty_like(b_np)
-        (discretize2_forward if n == 2 else discretize_forward)(a_np, b_np, float(dt), phi, gamma)
+        if n == 2:
+            discretize2_forward(a_np, b_np, float(dt), DEGREE_2X2[a_np.dtype], phi, gamma)
+        else:
+            discretize_forward(a_np, b_np, float(dt), phi, gamma)
         ctx.save_for_backward(a, b)
         ctx.dt = float(dt)
         return torch.from_numpy(phi).view(a.shape), torch.from_numpy(gamma).view(b.shape)
@@ -300,9 +305,13 @@ class CompiledDiscretize(torch.autograd.Function):
         a, b = ctx.saved_tensors
         n = a.shape[-1]
         a_np, b_np = _numpy(a).reshape(-1, n, n), _numpy(b).reshape(-1, n)
+        grad_phi_np = _numpy(grad_phi.to(a.dtype)).reshape(-1, n, n)
+        grad_gamma_np = _numpy(grad_gamma.to(b.dtype)).reshape(-1, n)
         grad_a, grad_b = np.empty_like(a_np), np.empty_like(b_np)
-        (discretize2_backward if n == 2 else discretize_backward)(a_np, b_np, ctx.dt, _numpy(grad_phi.to(a.dtype)).reshape(-1, n, n),
-                            _numpy(grad_gamma.to(b.dtype)).reshape(-1, n), grad_a, grad_b)
+        if n == 2:
+            discretize2_backward(a_np, b_np, ctx.dt, DEGREE_2X2[a_np.dtype], grad_phi_np, grad_gamma_np, grad_a, grad_b)
+        else:
+            discretize_backward(a_np, b_np, ctx.dt, grad_phi_np, grad_gamma_np, grad_a, grad_b)
         return torch.from_numpy(grad_a).view(a.shape), torch.from_numpy(grad_b).view(b.shape), None
 
 
