@@ -6,9 +6,9 @@ Phi = exp(X) and phi1(X) = sum_k X^k / (k + 1)! (Gamma = phi1(X) dt B) are compu
 in that algebra: Y = X / 2^s = m I + N' with |m| + sqrt|Q| (a bound of its spectral radius; N'^2 = Q I) at
 most THETA, Taylor polynomials by Horner (of a degree that truncates below the dtype's rounding), then s
 squarings exp(2Y) = exp(Y)^2, phi1(2Y) = (exp(Y) + I) phi1(Y) / 2. Unlike the generic kernels
-(`pipe.model.ltv_numba`: the 1-norm of the augmented matrix [[X, B dt], [0, 0]]), the number of squarings follows the spectrum of X alone: mds2's
-companion matrix at conn's neutral profile has a 1-norm of 25 (7 squarings) and a spectral radius of 0.5
-(2 squarings); Gamma is linear in B, which needs no scaling.
+(`pipe.model.ltv_numba`: the 1-norm of the augmented matrix [[X, B dt], [0, 0]]), the number of squarings
+follows the spectrum of X alone: mds2's companion matrix at conn's neutral profile has a 1-norm of 25
+(7 squarings) and a spectral radius of 0.5 (2 squarings); Gamma is linear in B, which needs no scaling.
 
 The result depends on X only through the two numbers (m, Q), so the backward carries their derivatives
 forward through the same Horner steps and squarings (forward mode: the exact derivative of this algorithm,
