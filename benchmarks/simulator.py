@@ -3,8 +3,11 @@ and recurrence), of the discretisation and of the recurrence alone, the torch lo
 kernels, at a long trajectory batch (10 x 2000 steps) and a whole conn epoch (120 x 400 steps), mds2 (n = 2),
 float32 as in training. "generic" is the compiled path with the two-state discretisation
 (`pipe.model.ltv_2x2`) swapped for the kernels of any size (`pipe.model.ltv_numba`, the augmented matrix),
-what mds2 ran before 2026-11-25. Median of --repeats after a warm-up call (numba compiles, or loads its
-cache, on the first).
+what mds2 ran before 2026-11-25, as two kernels (discretisation, then recurrence). "simulate" is what
+`ltv.simulate` runs: the torch loop, and for mds2 compiled the fused kernel (`CompiledSimulate2`, both steps
+in one pass); "discretize, then recurrence" is the same computation as two kernels with the step matrices as
+tensors in between. Median of --repeats after a warm-up call (numba compiles, or loads its cache, on the
+first).
 
     python benchmarks/simulator.py [--repeats 5] [--threads 2]
 """
@@ -63,8 +66,10 @@ def main() -> None:
         a, b, u = system(batch, steps)
         with torch.no_grad():
             phi, gamma = ltv.discretize_torch(a, b, dt)
-        parts = {
+        unfused = lambda a, b, u: ltv.recurrence(*ltv.discretize(a, b, dt), u)      # noqa: E731
+        parts = {   # part: the function the compiled column runs (the torch and generic columns run `unfused`)
             "simulate": ((lambda a, b, u: ltv.simulate(a, b, u, dt)), (a, b, u)),
+            "discretize, then recurrence": (unfused, (a, b, u)),
             "discretize": ((lambda a, b: torch.cat([t.flatten() for t in ltv.discretize(a, b, dt)])[:, None]),
                            (a, b)),
             "recurrence": (ltv.recurrence, (phi, gamma, u)),
@@ -75,7 +80,8 @@ def main() -> None:
                                            ("compiled", "compiled", TWO_STATE)):
                 ltv.set_backend(backend)
                 ltv_numba.discretize2_forward, ltv_numba.discretize2_backward = kernels
-                seconds[name] = timed(fn, inputs, args.repeats)
+                seconds[name] = timed(unfused if part == "simulate" and name != "compiled" else fn, inputs,
+                                      args.repeats)
             ltv_numba.discretize2_forward, ltv_numba.discretize2_backward = TWO_STATE
             torch_ms, generic_ms, compiled_ms = (seconds[name] * 1e3 for name in ("torch", "generic", "compiled"))
             print(f"| {batch} x {steps} | {part} | {torch_ms:.2f} ms | {generic_ms:.3f} ms | {compiled_ms:.3f} ms | "

@@ -142,6 +142,26 @@ def test_compiled_recurrence_passes_gradcheck():
     assert torch.autograd.gradcheck(ltv._compiled().CompiledRecurrence.apply, (phi, gamma, u))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("steps", [1, 16, 17, 300])
+def test_fused_two_state_simulation_equals_the_two_kernels_bit_for_bit(dtype, steps):
+    """CompiledSimulate2 (what simulate runs for n = 2) against CompiledDiscretize then CompiledRecurrence:
+    the same states and gradients to the last bit, whatever the steps' split into blocks of 16."""
+    compiled = ltv._compiled()
+    a, b, u = mds2_system(3, steps, dtype=dtype, seed=steps)
+    results = []
+    for fused in (True, False):
+        inputs = [t.clone().requires_grad_() for t in (a, b, u)]
+        if fused:
+            states = compiled.CompiledSimulate2.apply(*inputs, 1e-3)
+        else:
+            states = compiled.CompiledRecurrence.apply(*compiled.CompiledDiscretize.apply(*inputs[:2], 1e-3), inputs[2])
+        (states[..., 0] * torch.linspace(-1, 2, states.shape[1], dtype=dtype)).sum().backward()
+        results.append([states, *(t.grad for t in inputs)])
+    for got, expected in zip(*results):
+        assert got.dtype == dtype and torch.equal(got, expected)
+
+
 @using("compiled")
 def test_compiled_simulation_passes_gradcheck(backend):
     a, b, u = mds2_system(2, 8)
@@ -217,8 +237,8 @@ def test_stiff_positive_parameters_stay_bounded(backend, a0, dtype):
 def test_auto_uses_the_compiled_kernels_on_cpu_from_a_size_on(monkeypatch):
     calls = []
     compiled = ltv._compiled()
-    monkeypatch.setattr(compiled.CompiledRecurrence, "apply", lambda *args: calls.append(args[2].shape) or
-                        ltv.recurrence_torch(*args))
+    monkeypatch.setattr(compiled.CompiledSimulate2, "apply", lambda a, b, u, dt: calls.append(u.shape) or
+                        ltv.recurrence_torch(*ltv.discretize_torch(a, b, dt), u))
     monkeypatch.setattr(ltv, "_backend", "auto")
     monkeypatch.setattr(ltv, "AUTO_COMPILED_MIN_STEPS", 20)
     ltv.simulate(*mds2_system(1, 19), 1e-3)     # below the size: the torch loop
@@ -268,8 +288,8 @@ def test_auto_compiles_a_training_batch(monkeypatch):
     """Regression: a size threshold once sent stage 2's batches (10 trials of ~400 samples) to the torch loop."""
     calls = []
     compiled = ltv._compiled()
-    monkeypatch.setattr(compiled.CompiledRecurrence, "apply", lambda *args: calls.append(1) or
-                        ltv.recurrence_torch(*args))
+    monkeypatch.setattr(compiled.CompiledSimulate2, "apply", lambda a, b, u, dt: calls.append(1) or
+                        ltv.recurrence_torch(*ltv.discretize_torch(a, b, dt), u))
     monkeypatch.setattr(ltv, "_backend", "auto")
     times = np.arange(0, 4.0, 0.01)
     theta = torch.tensor([4e-4, 0.04, 1.0, 2.0]).expand(10, len(times), 4)

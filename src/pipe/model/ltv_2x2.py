@@ -133,6 +133,52 @@ def _exponentials_and_derivatives(lanes: np.ndarray, most: int, degree: int, sta
             state[11, lane] = 0.5 * (pq * h + (p + 1.0) * hq + rq * g + r * gq) if active else hq
 
 
+@_jit_inline
+def _write_steps(lanes: np.ndarray, state: np.ndarray, b: np.ndarray, first: int, count: int, dt: float,
+                 phi: np.ndarray, gamma: np.ndarray, out: int) -> None:
+    """phi[out + lane] and gamma[out + lane] of the block's first `count` lanes (items first.. of b):
+    Phi = p I + r 2^-s N, Gamma = dt (g I + h 2^-s N) b."""
+    for lane in range(count):
+        item = first + lane
+        x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
+        alpha, beta = state[0, lane], state[1, lane] * scale          # beta of N = 2^s N'
+        phi[out + lane, 0, 0], phi[out + lane, 0, 1] = alpha + beta * n11, beta * x12
+        phi[out + lane, 1, 0], phi[out + lane, 1, 1] = beta * x21, alpha - beta * n11
+        alpha, beta = state[2, lane] * dt, state[3, lane] * scale * dt
+        b1, b2 = b[item, 0], b[item, 1]
+        gamma[out + lane, 0] = (alpha + beta * n11) * b1 + beta * x12 * b2
+        gamma[out + lane, 1] = beta * x21 * b1 + (alpha - beta * n11) * b2
+
+
+@_jit_inline
+def _contract(lanes: np.ndarray, state: np.ndarray, b: np.ndarray, first: int, count: int, dt: float,
+              grad_phi: np.ndarray, grad_gamma: np.ndarray, out: int, grad_a: np.ndarray, grad_b: np.ndarray) -> None:
+    """Gradients of a and b (items first..) from those of phi and gamma (at out..): the gradients of
+    (p, r, g, h), of N and of b; the derivatives of (p, r, g, h) by m and Q give those of mu = 2^s m and
+    q = 4^s Q, and with mu = (x11 + x22) / 2, n11 = (x11 - x22) / 2, q = n11^2 + x12 x21 those of X = a dt."""
+    for lane in range(count):
+        item, at = first + lane, out + lane
+        x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
+        f11, f12, f21, f22 = grad_phi[at, 0, 0], grad_phi[at, 0, 1], grad_phi[at, 1, 0], grad_phi[at, 1, 1]
+        g1, g2, b1, b2 = grad_gamma[at, 0], grad_gamma[at, 1], b[item, 0], b[item, 1]
+        beta_p, alpha_g, beta_g = state[1, lane] * scale, state[2, lane] * dt, state[3, lane] * scale * dt
+        grad_b[item, 0] = (alpha_g + beta_g * n11) * g1 + beta_g * x21 * g2
+        grad_b[item, 1] = beta_g * x12 * g1 + (alpha_g - beta_g * n11) * g2
+        bar_p = f11 + f22
+        bar_r = (n11 * (f11 - f22) + x12 * f12 + x21 * f21) * scale
+        bar_g = dt * (g1 * b1 + g2 * b2)
+        bar_h = dt * (n11 * (g1 * b1 - g2 * b2) + x12 * g1 * b2 + x21 * g2 * b1) * scale
+        bar_mu = scale * (bar_p * state[4, lane] + bar_r * state[5, lane] + bar_g * state[6, lane]
+                          + bar_h * state[7, lane])
+        bar_q = scale * scale * (bar_p * state[8, lane] + bar_r * state[9, lane] + bar_g * state[10, lane]
+                                 + bar_h * state[11, lane])
+        bar_n11 = beta_p * (f11 - f22) + beta_g * (g1 * b1 - g2 * b2) + 2.0 * n11 * bar_q
+        grad_a[item, 0, 0] = 0.5 * (bar_mu + bar_n11) * dt
+        grad_a[item, 1, 1] = 0.5 * (bar_mu - bar_n11) * dt
+        grad_a[item, 0, 1] = (beta_p * f12 + beta_g * g1 * b2 + x21 * bar_q) * dt
+        grad_a[item, 1, 0] = (beta_p * f21 + beta_g * g2 * b1 + x12 * bar_q) * dt
+
+
 @_jit
 def discretize2_forward(a: np.ndarray, b: np.ndarray, dt: float, degree: int, phi: np.ndarray,
                         gamma: np.ndarray) -> None:
@@ -142,49 +188,78 @@ def discretize2_forward(a: np.ndarray, b: np.ndarray, dt: float, degree: int, ph
         lanes, state = np.empty((7, LANES)), np.empty((4, LANES))
         for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
             _exponentials(lanes, _load(a, dt, first, lanes), degree, state)
-            for lane in range(min(LANES, count - first)):
-                item = first + lane
-                x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
-                alpha, beta = state[0, lane], state[1, lane] * scale          # beta of N = 2^s N'
-                phi[item, 0, 0], phi[item, 0, 1] = alpha + beta * n11, beta * x12
-                phi[item, 1, 0], phi[item, 1, 1] = beta * x21, alpha - beta * n11
-                alpha, beta = state[2, lane] * dt, state[3, lane] * scale * dt
-                b1, b2 = b[item, 0], b[item, 1]
-                gamma[item, 0] = (alpha + beta * n11) * b1 + beta * x12 * b2
-                gamma[item, 1] = beta * x21 * b1 + (alpha - beta * n11) * b2
+            _write_steps(lanes, state, b, first, min(LANES, count - first), dt, phi, gamma, first)
 
 
 @_jit
 def discretize2_backward(a: np.ndarray, b: np.ndarray, dt: float, degree: int, grad_phi: np.ndarray,
                          grad_gamma: np.ndarray, grad_a: np.ndarray, grad_b: np.ndarray) -> None:
-    """Gradients of a (N, 2, 2) and b (N, 2) from those of phi and gamma: Phi = p I + r 2^-s N and
-    Gamma = dt (g I + h 2^-s N) b give the gradients of (p, r, g, h), of N directly and of b; the
-    derivatives of (p, r, g, h) by m and Q give those of mu = 2^s m and q = 4^s Q, and with
-    mu = (x11 + x22) / 2, n11 = (x11 - x22) / 2, q = n11^2 + x12 x21 those of X = a dt."""
+    """Gradients of a (N, 2, 2) and b (N, 2) from those of phi and gamma (`_contract`)."""
     count = a.shape[0]
     for chunk in numba.prange((count + CHUNK - 1) // CHUNK):
         lanes, state = np.empty((7, LANES)), np.empty((12, LANES))
         for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
             _exponentials_and_derivatives(lanes, _load(a, dt, first, lanes), degree, state)
-            for lane in range(min(LANES, count - first)):
-                item = first + lane
-                x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
-                f11, f12 = grad_phi[item, 0, 0], grad_phi[item, 0, 1]
-                f21, f22 = grad_phi[item, 1, 0], grad_phi[item, 1, 1]
-                g1, g2, b1, b2 = grad_gamma[item, 0], grad_gamma[item, 1], b[item, 0], b[item, 1]
-                beta_p, alpha_g, beta_g = state[1, lane] * scale, state[2, lane] * dt, state[3, lane] * scale * dt
-                grad_b[item, 0] = (alpha_g + beta_g * n11) * g1 + beta_g * x21 * g2
-                grad_b[item, 1] = beta_g * x12 * g1 + (alpha_g - beta_g * n11) * g2
-                bar_p = f11 + f22
-                bar_r = (n11 * (f11 - f22) + x12 * f12 + x21 * f21) * scale
-                bar_g = dt * (g1 * b1 + g2 * b2)
-                bar_h = dt * (n11 * (g1 * b1 - g2 * b2) + x12 * g1 * b2 + x21 * g2 * b1) * scale
-                bar_mu = scale * (bar_p * state[4, lane] + bar_r * state[5, lane] + bar_g * state[6, lane]
-                                  + bar_h * state[7, lane])
-                bar_q = scale * scale * (bar_p * state[8, lane] + bar_r * state[9, lane] + bar_g * state[10, lane]
-                                         + bar_h * state[11, lane])
-                bar_n11 = beta_p * (f11 - f22) + beta_g * (g1 * b1 - g2 * b2) + 2.0 * n11 * bar_q
-                grad_a[item, 0, 0] = 0.5 * (bar_mu + bar_n11) * dt
-                grad_a[item, 1, 1] = 0.5 * (bar_mu - bar_n11) * dt
-                grad_a[item, 0, 1] = (beta_p * f12 + beta_g * g1 * b2 + x21 * bar_q) * dt
-                grad_a[item, 1, 0] = (beta_p * f21 + beta_g * g2 * b1 + x12 * bar_q) * dt
+            _contract(lanes, state, b, first, min(LANES, count - first), dt, grad_phi, grad_gamma, first, grad_a,
+                      grad_b)
+
+
+@_jit
+def simulate2_forward(a: np.ndarray, b: np.ndarray, u: np.ndarray, dt: float, degree: int, x: np.ndarray) -> None:
+    """discretize2_forward and `pipe.model.ltv_numba.recurrence_forward` in one pass per trajectory: a
+    (B, T, 2, 2), b (B, T, 2), u (B, T) -> states x (B, T + 1, 2) from x_0 = 0. Each block of LANES steps is
+    discretised into small arrays of the inputs' dtype and stepped through at once, so the step matrices
+    never reach memory as tensors; the same operations in the same order as the two kernels, so the same
+    numbers to the last bit."""
+    batch, steps = u.shape
+    for row in numba.prange(batch):
+        lanes, state = np.empty((7, LANES)), np.empty((4, LANES))
+        phi, gamma = np.empty((LANES, 2, 2), dtype=a.dtype), np.empty((LANES, 2), dtype=a.dtype)
+        x[row, 0, 0], x[row, 0, 1] = 0.0, 0.0
+        for first in range(0, steps, LANES):
+            count = min(LANES, steps - first)
+            _exponentials(lanes, _load(a[row], dt, first, lanes), degree, state)
+            _write_steps(lanes, state, b[row], first, count, dt, phi, gamma, 0)
+            for lane in range(count):
+                k = first + lane
+                for i in range(2):
+                    acc = gamma[lane, i] * u[row, k]
+                    for j in range(2):
+                        acc += phi[lane, i, j] * x[row, k, j]
+                    x[row, k + 1, i] = acc
+
+
+@_jit
+def simulate2_backward(a: np.ndarray, b: np.ndarray, u: np.ndarray, dt: float, degree: int, x: np.ndarray,
+                       grad_x: np.ndarray, grad_a: np.ndarray, grad_b: np.ndarray, grad_u: np.ndarray) -> None:
+    """The adjoint of simulate2_forward, block by block from the end: each block's steps are discretised
+    again with their derivatives, the adjoint recurrence lambda_k = g_k + Phi_k^T lambda_{k+1} runs through
+    them (as `pipe.model.ltv_numba.recurrence_backward`) and its gradients of Phi and Gamma are contracted at
+    once into those of a and b (`_contract`)."""
+    batch, steps = u.shape
+    for row in numba.prange(batch):
+        lanes, state = np.empty((7, LANES)), np.empty((12, LANES))
+        phi, gamma = np.empty((LANES, 2, 2), dtype=a.dtype), np.empty((LANES, 2), dtype=a.dtype)
+        grad_phi, grad_gamma = np.empty((LANES, 2, 2), dtype=a.dtype), np.empty((LANES, 2), dtype=a.dtype)
+        lam = grad_x[row, steps].copy()
+        nxt = np.empty(2)
+        for first in range((steps - 1) // LANES * LANES, -1, -LANES):
+            count = min(LANES, steps - first)
+            _exponentials_and_derivatives(lanes, _load(a[row], dt, first, lanes), degree, state)
+            _write_steps(lanes, state, b[row], first, count, dt, phi, gamma, 0)
+            for lane in range(count - 1, -1, -1):
+                k = first + lane
+                dot = 0.0
+                for i in range(2):
+                    grad_gamma[lane, i] = lam[i] * u[row, k]
+                    dot += gamma[lane, i] * lam[i]
+                    for j in range(2):
+                        grad_phi[lane, i, j] = lam[i] * x[row, k, j]
+                grad_u[row, k] = dot
+                for j in range(2):
+                    acc = grad_x[row, k, j]
+                    for i in range(2):
+                        acc += phi[lane, i, j] * lam[i]
+                    nxt[j] = acc
+                lam[:] = nxt
+            _contract(lanes, state, b[row], first, count, dt, grad_phi, grad_gamma, 0, grad_a[row], grad_b[row])

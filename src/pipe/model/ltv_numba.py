@@ -9,8 +9,10 @@
   reverse.
 - `CompiledRecurrence`: x_{k+1} = Phi_k x_k + Gamma_k u_k from x_0 = 0. Its backward is the adjoint
   recurrence lambda_k = g_k + Phi_k^T lambda_{k+1}, which gives the gradients of Phi, Gamma and u.
+- `CompiledSimulate2`: both of them for a two-state model in one kernel each way (what
+  `pipe.model.ltv.simulate` runs for mds2): the same numbers without the step matrices as tensors.
 
-Both run on CPU float32 or float64 tensors (each dtype compiles once; sums accumulate in float64) and loop
+All run on CPU float32 or float64 tensors (each dtype compiles once; sums accumulate in float64) and loop
 over the batch in parallel (numba's `prange`, `numba.set_num_threads` caps the threads). Why by hand:
 torch's `matrix_exp` and a Python loop over time launch thousands of tiny kernels per call; no library
 offers a compiled batched small-matrix exponential with its adjoint or a compiled LTV recurrence.
@@ -22,7 +24,13 @@ import numba
 import numpy as np
 import torch
 
-from pipe.model.ltv_2x2 import DEGREE_2X2, discretize2_backward, discretize2_forward
+from pipe.model.ltv_2x2 import (
+    DEGREE_2X2,
+    discretize2_backward,
+    discretize2_forward,
+    simulate2_backward,
+    simulate2_forward,
+)
 
 TAYLOR_DEGREE = 10
 THETA = 0.25          # ||M / 2^s||_1 bound: 0.25^11 / 11! ~ 6e-15 truncation
@@ -335,3 +343,28 @@ class CompiledRecurrence(torch.autograd.Function):
         recurrence_backward(phi_np, gamma_np, u_np, states.numpy(), _numpy(grad_states.to(states.dtype)), grad_phi,
                             grad_gamma, grad_u)
         return torch.from_numpy(grad_phi), torch.from_numpy(grad_gamma), torch.from_numpy(grad_u)
+
+
+class CompiledSimulate2(torch.autograd.Function):
+    """(A (B, T, 2, 2), B (B, T, 2), u (B, T), dt) -> states (B, T + 1, 2) from x_0 = 0: `CompiledDiscretize`
+    and `CompiledRecurrence` of a two-state model in one kernel each way, the same numbers without the step
+    matrices and their gradients as tensors in between."""
+
+    @staticmethod
+    def forward(ctx, a: torch.Tensor, b: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
+        a_np, b_np, u_np = _numpy(a), _numpy(b), _numpy(u)
+        x = np.empty((u_np.shape[0], u_np.shape[1] + 1, 2), dtype=a_np.dtype)
+        simulate2_forward(a_np, b_np, u_np, float(dt), DEGREE_2X2[a_np.dtype], x)
+        states = torch.from_numpy(x)
+        ctx.save_for_backward(a, b, u, states)
+        ctx.dt = float(dt)
+        return states
+
+    @staticmethod
+    def backward(ctx, grad_states: torch.Tensor):
+        a, b, u, states = ctx.saved_tensors
+        a_np, b_np, u_np = _numpy(a), _numpy(b), _numpy(u)
+        grad_a, grad_b, grad_u = np.empty_like(a_np), np.empty_like(b_np), np.empty_like(u_np)
+        simulate2_backward(a_np, b_np, u_np, ctx.dt, DEGREE_2X2[a_np.dtype], states.numpy(),
+                           _numpy(grad_states.to(states.dtype)), grad_a, grad_b, grad_u)
+        return torch.from_numpy(grad_a), torch.from_numpy(grad_b), torch.from_numpy(grad_u), None
