@@ -67,7 +67,7 @@ def main() -> None:
         with torch.no_grad():
             phi, gamma = ltv.discretize_torch(a, b, dt)
         unfused = lambda a, b, u: ltv.recurrence(*ltv.discretize(a, b, dt), u)      # noqa: E731
-        parts = {   # part: the function the compiled column runs (the torch and generic columns run `unfused`)
+        parts = {   # part: (function, inputs); for "simulate" the torch and generic columns run `unfused`
             "simulate": ((lambda a, b, u: ltv.simulate(a, b, u, dt)), (a, b, u)),
             "discretize, then recurrence": (unfused, (a, b, u)),
             "discretize": ((lambda a, b: torch.cat([t.flatten() for t in ltv.discretize(a, b, dt)])[:, None]),
