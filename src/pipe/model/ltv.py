@@ -116,7 +116,8 @@ def midpoints(x: torch.Tensor) -> torch.Tensor:
 def simulate(a: torch.Tensor, b: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     """States (B, T, n) from zero initial state; A (B, T-1, n, n) and B (B, T-1, n) act over each period
     and u (B, T-1) is the input over it."""
-    if a.dim() == 4 and a.shape[-1] == 2 and _use_compiled(u.numel(), a, b, u):
+    two_states = a.shape == (*u.shape, 2, 2) and b.shape == (*u.shape, 2)     # and nothing broadcast
+    if two_states and _use_compiled(u.numel(), a, b, u):
         return _compiled().CompiledSimulate2.apply(a, b, u, dt)     # both steps in one kernel, same numbers
     phi, gamma = discretize(a, b, dt)
     return recurrence(phi, gamma, u)
