@@ -126,6 +126,7 @@ def test_a_smoke_curve_runs_end_to_end_and_its_table_holds_the_runs_results(tmp_
     table = (tmp_path / "out" / "learning_curve.md").read_text()
     runs = [json.loads((sweep / f"train_{n}" / "results.json").read_text()) for n in (2, 3)]
     assert runs[1]["parts"] == {"train": 3, "val": 1, "test": 2}
+    assert runs[0]["machine"]["cpus"].isdigit() and runs[0]["machine"]["torch"]   # where the numbers came from
     small, large = (Spread(**run["methods"]["pipe"]["fit_F"]) for run in runs)
     assert f"| pipe | {small} | {large} | - |" in table
     assert (tmp_path / "out" / "learning_curve.png").stat().st_size > 10_000

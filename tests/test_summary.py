@@ -17,13 +17,16 @@ from pipe.evaluation.report import epoch_losses, write_force_curves, write_losse
 from pipe.evaluation.summary import write_summary
 
 
-def fake_domain(runs: Path, domain: str, methods: dict[str, tuple[float, float]], seeds=(0, 1, 2)) -> Path:
+def fake_domain(runs: Path, domain: str, methods: dict[str, tuple[float, float]], seeds=(0, 1, 2),
+                machine: dict[str, str] | None = None) -> Path:
     """A finished seeds run as `train.py seeds=[...]` leaves it, with FIT(F) (mean, std) per method."""
     folder = runs / domain
     first = folder / f"seed_{seeds[0]}"
     (first / "report").mkdir(parents=True)
     doc = {"domain": domain, "seeds": list(seeds),
            "methods": {m: {"fit_F": {"mean": mean, "std": std, "n": len(seeds)}} for m, (mean, std) in methods.items()}}
+    if machine is not None:
+        doc["machine"] = machine
     (folder / "results.json").write_text(json.dumps(doc))
     (folder / "metrics.json").write_text(json.dumps({"seeds": list(seeds), "test": {"fit_F": methods["pipe"][0]},
                                                      "mean_seconds": {"vae": 81.0}}))
@@ -38,7 +41,9 @@ def fake_domain(runs: Path, domain: str, methods: dict[str, tuple[float, float]]
 def test_the_summary_tables_every_domain_with_pipe_judged_against_each_method(tmp_path):
     runs, out = tmp_path / "runs", tmp_path / "reports"
     fake_domain(runs, "conn", {"pipe": (70.0, 1.0), "nearest": (67.0, 1.0), "gpr": (71.5, 1.0)})
-    fake_domain(runs, "pins", {"pipe": (80.0, 0.5), "mean": (82.0, 0.5)}, seeds=(3, 4))
+    fake_domain(runs, "pins", {"pipe": (80.0, 0.5), "mean": (82.0, 0.5)}, seeds=(3, 4),
+                machine={"cpu": "AMD EPYC 7B13", "cpus": "2", "system": "Linux-6.1", "python": "3.11.9",
+                         "torch": "2.13.0", "numba": "0.61.0", "numpy": "2.2.0"})
     written = write_summary(runs, out)
     text = (out / "results.md").read_text()
     # 70 - 67 = 3 > 1 + 1: better; |70 - 71.5| = 1.5 <= 2: tie; 80 - 82 = -2 < -(0.5 + 0.5): worse
@@ -47,6 +52,9 @@ def test_the_summary_tables_every_domain_with_pipe_judged_against_each_method(tm
     assert "| conn | DGCNNVAE | MDS1 | 3 | gpr | 71.50 ± 1.00 | - | - | - | tie |" in text
     assert "| pins | DGCNNVAE | MDS1 | 2 | mean | 82.00 ± 0.50 | - | - | - | worse |" in text
     assert "### Domain conn" in text and "### Domain pins" in text
+    assert "- conn: not recorded\n" in text          # a results.json from before the machine was recorded
+    assert ("- pins: AMD EPYC 7B13, 2 logical CPUs, Linux-6.1, Python 3.11.9, torch 2.13.0, numba 0.61.0, "
+            "numpy 2.2.0\n") in text
     assert json.loads((out / "metrics.json").read_text()) == {
         "conn": {"seeds": [0, 1, 2], "test": {"fit_F": 70.0}}, "pins": {"seeds": [3, 4], "test": {"fit_F": 80.0}}}
     assert (out / "plots" / "forces" / "pins.csv").read_text().endswith("x,measured,0.0,1.5\n")
@@ -123,3 +131,16 @@ def test_a_bad_params_file_is_named_and_nothing_is_written(tmp_path, capsys, con
     assert main(["report", "summary", str(runs), "--params", str(params), "--out", str(out)]) == 2
     err = capsys.readouterr().err.replace("\n", " ")
     assert f"{params}: " in err and message in err and "Traceback" not in err and not out.exists()
+
+
+def test_the_machine_record_names_this_cpu_and_the_installed_libraries():
+    from importlib import metadata
+
+    import torch
+
+    from pipe.machine import machine_info
+
+    info = machine_info()
+    assert info["torch"] == metadata.version("torch") and torch.__version__.startswith(info["torch"])
+    assert info["numpy"] == np.__version__ and info["cpus"].isdigit() and info["cpu"] not in ("", "unknown")
+    assert all(isinstance(value, str) for value in info.values())

@@ -37,6 +37,7 @@ from pipe.evaluation.evaluate import MethodResult, evaluate_methods, reconstruct
 from pipe.evaluation.report import spread_markdown, write_report
 from pipe.evaluation.spread import Spread, check_seeds, summarise, verdict
 from pipe.files import write_text_atomically
+from pipe.machine import machine_info
 from pipe.model import ltv
 from pipe.model.card import BandCard, ModelCard
 from pipe.model.interfaces import DynamicModel, ParameterHead
@@ -243,6 +244,7 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     tags = {"domain": data.domain.name, **names, "git_commit": git_commit(Path(cfg.paths.root)),
             "dataset": str(data.dataset_dir), "dataset_version": data.dataset_version,
             "torch_threads": str(torch.get_num_threads()),
+            **{f"machine.{key}": value for key, value in machine_info().items()},
             **dvc_dataset_tags(data.dataset_dir)}
     tracking = cfg.mlflow.enabled
     run_name = f"{data.domain.name} {names['encoder']} {names['model']}"
@@ -336,7 +338,7 @@ def write_seeds_results(result: SeedsResult) -> None:
          "reconstruction_std": {k: v.std for k, v in reconstruction.items()},
          "mean_seconds": result.seconds}, indent=2) + "\n")
     write_text_atomically(result.run_dir / "results.json", json.dumps(
-        {"domain": result.domain_name, "parts": counts, "seeds": result.seeds,
+        {"domain": result.domain_name, "parts": counts, "seeds": result.seeds, "machine": machine_info(),
          "methods": {n: {k: {"mean": v.mean, "std": v.std, "n": v.n} for k, v in m.items()}
                      for n, m in summary.items()},
          "per_seed": {str(seed): {n: r.domain for n, r in run.results.items()}
@@ -413,7 +415,8 @@ def evaluate_trained(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, tr
                     objective=trained.objective, trained_dir=None if trained.folder == run_dir else trained.folder)
     write_text_atomically(run_dir / "metrics.json", json.dumps(
         {"test": run.pipe.domain, "baselines": {n: r.domain for n, r in results.items() if n != "pipe"},
-         "per_part": run.pipe.per_part, "reconstruction": reconstruction, "seconds": seconds}, indent=2) + "\n")
+         "per_part": run.pipe.per_part, "reconstruction": reconstruction, "seconds": seconds,
+         "machine": machine_info()}, indent=2) + "\n")
     write_report(run, run_dir / "report")
     return run
 

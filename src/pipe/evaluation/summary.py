@@ -4,8 +4,8 @@ Reads each domain's seeds run (`evaluations/<domain>/results.json` and `metrics.
 writes them, with or without phase=evaluate) and writes, for git and DVC:
 - metrics.json: per domain, PIPE's and the baselines' metrics as mean and std over the seeds
   (`dvc metrics show` / `dvc metrics diff`);
-- results.md: one table over domains, encoders and methods with PIPE's verdict against each, then each
-  domain's own table;
+- results.md: one table over domains, encoders and methods with PIPE's verdict against each, the machine
+  each domain ran on, then each domain's own table;
 - plots/forces/<domain>.csv and plots/losses/<domain>.csv: the first seed's measured and predicted force
   curves and loss curves (`dvc plots show` / `dvc plots diff`).
 """
@@ -40,6 +40,14 @@ def _component(run: Path, kind: str) -> str:
     return str(config[kind]["_target_"]).rsplit(".", 1)[-1]
 
 
+def machine_line(machine: dict[str, str] | None) -> str:
+    """A run's machine in one line (`pipe.machine.machine_info`), or that its results.json predates the record."""
+    if not machine:
+        return "not recorded"
+    return (f"{machine['cpu']}, {machine['cpus']} logical CPUs, {machine['system']}, Python {machine['python']}, "
+            + ", ".join(f"{name} {machine[name]}" for name in ("torch", "numba", "numpy") if name in machine))
+
+
 def domain_folders(runs: Path, domains: list[str] | None) -> list[Path]:
     """The domains' run folders: those named, or every folder of `runs` with a seeds run's results.json."""
     if domains is not None:
@@ -52,7 +60,7 @@ def domain_folders(runs: Path, domains: list[str] | None) -> list[Path]:
 
 def write_summary(runs: Path, out: Path, domains: list[str] | None = None) -> list[Path]:
     """metrics.json, results.md and the plot data (see the module's docstring) of the domains' runs in `runs`."""
-    metrics, rows, tables, plots = {}, [], [], []
+    metrics, rows, tables, plots, machines = {}, [], [], [], []
     for folder in domain_folders(runs, domains):
         doc = _read_json(folder / "results.json")
         values = _read_json(folder / "metrics.json")
@@ -67,6 +75,7 @@ def write_summary(runs: Path, out: Path, domains: list[str] | None = None) -> li
             rows.append(f"| {domain} | {encoder} | {model} | {len(seeds)} | {name} | "
                         + " | ".join(str(m[k]) if k in m else "-" for k, _ in COLUMNS) + f" | {judged} |")
         tables.append((folder / "results.md").read_text())
+        machines.append(f"- {domain}: {machine_line(doc.get('machine'))}")
         for kind in ("forces", "losses"):
             source = first / "report" / f"{kind}.csv"
             if not source.is_file():
@@ -77,7 +86,9 @@ def write_summary(runs: Path, out: Path, domains: list[str] | None = None) -> li
     text = "\n".join(["# Results over the domains (mean ± std over the training seeds)", "", head,
                       "|" + " --- |" * (6 + len(COLUMNS)), *rows, "",
                       "PIPE vs it: `better` or `worse` only when the means differ by more than the two standard "
-                      "deviations added; `tie` otherwise.", "", *tables])
+                      "deviations added; `tie` otherwise.", "",
+                      "Machines (results reproduce to the digit on one machine, not across machines):", *machines, "",
+                      *tables])
     written = [out / "metrics.json", out / "results.md"]
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomically(written[0], json.dumps(metrics, indent=2) + "\n")
