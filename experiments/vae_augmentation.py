@@ -10,6 +10,9 @@ evaluation read are never augmented. Variants:
                the force does not depend on it, so the code should not either
   scale=S      a random scale factor, uniform in [1 - S, 1 + S], per cloud and step
   rotate+scale=S  both
+  resample=K   each training cloud replaced, per step, by one of its part's K + 1 clouds: the stored one and
+               K more drawn from the mesh exactly as preprocessing draws it (Poisson-disk sampling with
+               cloud seeds data.cloud_seed + 1 .. + K): the code should not depend on which points were drawn
 The draws come from a generator of the run's seed of their own, so the VAE's sampling is the run's.
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/vae_augmentation.py OUT.jsonl runs/conn/seed_0 ... \
@@ -27,7 +30,10 @@ import torch
 from common import load_run, score
 
 from pipe.data.batches import stack_clouds
-from pipe.data.prepared import data_scales
+from pipe.data.dataset import load_dataset
+from pipe.data.prepared import PartData, data_scales
+from pipe.data.preprocess import cloud_from_mesh
+from pipe.data.spec import load_spec
 from pipe.model.pipe_model import PIPEModel
 from pipe.training import fit as fit_module
 from pipe.training.stages import VAEStage
@@ -45,26 +51,59 @@ def augment(clouds: torch.Tensor, rotate: bool, scale: float, generator: torch.G
     return clouds @ (turn * factor[:, None, None]).transpose(1, 2).to(clouds.dtype)
 
 
-def augmented_stage(rotate: bool, scale: float, seed: int) -> type[VAEStage]:
+def redrawn_clouds(root: Path, parts: list[PartData], cloud_seed: int, extra: int) -> list[torch.Tensor]:
+    """Per part, (extra + 1, n, 3): its stored cloud, then `extra` more drawn from its mesh as preprocessing
+    draws the stored one (checked: the draw with the stored seed gives the stored cloud)."""
+    spec = load_spec(root)
+    meshes = load_dataset(root, parts=[p.name for p in parts]).parts
+    draws = []
+    for part in parts:
+        mesh = meshes[part.name]
+
+        def draw(seed: int, mesh=mesh, part=part) -> torch.Tensor:
+            return torch.from_numpy(cloud_from_mesh(mesh.mesh_path, spec.mesh_units, len(part.cloud.points), seed,
+                                                    mesh.metadata.get("axis", "z")).points)
+
+        stored = torch.from_numpy(part.cloud.points)
+        if not torch.equal(draw(cloud_seed), stored):
+            raise SystemExit(f"{part.name}: a new draw with the stored cloud seed differs from the stored cloud")
+        draws.append(torch.stack([stored, *(draw(cloud_seed + k) for k in range(1, extra + 1))]))
+    return draws
+
+
+def resample(clouds: torch.Tensor, draws: list[torch.Tensor], generator: torch.Generator) -> torch.Tensor:
+    """Each cloud of the batch (a stored training cloud) replaced by a uniformly chosen draw of its part."""
+    out = clouds.clone()
+    for row, cloud in enumerate(clouds):
+        part = next(i for i, d in enumerate(draws) if torch.equal(d[0].to(cloud.dtype), cloud))
+        out[row] = draws[part][int(torch.randint(len(draws[part]), (1,), generator=generator))]
+    return out
+
+
+def augmented_stage(rotate: bool, scale: float, draws: list[torch.Tensor] | None, seed: int) -> type[VAEStage]:
     generator = torch.Generator().manual_seed(seed)
 
     class Stage(VAEStage):
         def training_step(self, clouds, batch_idx):
+            if draws is not None:
+                clouds = resample(clouds, draws, generator)
             return self._step(augment(clouds, rotate, scale, generator), "train")
 
     return Stage
 
 
-def parse(variant: str) -> tuple[bool, float]:
-    rotate, scale = False, 0.0
+def parse(variant: str) -> tuple[bool, float, int]:
+    rotate, scale, extra = False, 0.0, 0
     for part in variant.split("+"):
         if part == "rotate":
             rotate = True
         elif part.startswith("scale="):
             scale = float(part.removeprefix("scale="))
+        elif part.startswith("resample="):
+            extra = int(part.removeprefix("resample="))
         elif part != "none":
             raise SystemExit(f"unknown variant {variant!r}")
-    return rotate, scale
+    return rotate, scale, extra
 
 
 def main() -> None:
@@ -76,12 +115,13 @@ def main() -> None:
     original = fit_module.VAEStage
     for run in args.runs:
         for variant in args.variants.split(","):
-            rotate, scale = parse(variant)
+            rotate, scale, extra = parse(variant)
             run_dir = Path(run)
             cfg, data, (encoder, head, dynamics) = load_run(run_dir)
             train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
             model = PIPEModel(encoder, head, dynamics, *data_scales(train))
-            fit_module.VAEStage = augmented_stage(rotate, scale, cfg.seed)
+            draws = redrawn_clouds(data.dataset_dir, train, cfg.data.cloud_seed, extra) if extra else None
+            fit_module.VAEStage = augmented_stage(rotate, scale, draws, cfg.seed)
             try:
                 with tempfile.TemporaryDirectory() as tmp:
                     vae_s = fit_module.fit_vae(cfg, encoder, train, val, Path(tmp), False, [])
