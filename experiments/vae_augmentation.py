@@ -75,7 +75,9 @@ def resample(clouds: torch.Tensor, draws: list[torch.Tensor], generator: torch.G
     """Each cloud of the batch (a stored training cloud) replaced by a uniformly chosen draw of its part."""
     out = clouds.clone()
     for row, cloud in enumerate(clouds):
-        part = next(i for i, d in enumerate(draws) if torch.equal(d[0].to(cloud.dtype), cloud))
+        part = next((i for i, d in enumerate(draws) if torch.equal(d[0].to(cloud.dtype), cloud)), None)
+        if part is None:
+            raise SystemExit("a training cloud matches no stored cloud of the training parts")
         out[row] = draws[part][int(torch.randint(len(draws[part]), (1,), generator=generator))]
     return out
 

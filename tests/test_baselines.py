@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
+from conftest import compose_config
 
-from pipe.data.dataset import StaticCurve
-from pipe.data.prepared import PartData
+from pipe.data.dataset import StaticCurve, load_dataset
+from pipe.data.prepared import PartData, PreprocessSettings, prepare_part
 from pipe.data.preprocess import PointCloud, Profile
+from pipe.data.spec import load_spec
 from pipe.errors import PipeError
 from pipe.evaluation import identification
 from pipe.evaluation.context import EvalContext
@@ -19,9 +22,12 @@ from pipe.evaluation.evaluate import evaluate_methods
 from pipe.evaluation.identification import identify, start_head
 from pipe.evaluation.methods import METHODS
 from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_components
 from pipe.plugins.encoder.pointnet import PointNetVAE
 from pipe.plugins.head.gaussian import GaussianHead
 from pipe.plugins.model.mds2 import MDS2
+from pipe.synthetic import generate_dataset
+from pipe.threads import threads_set_to
 
 DT = 0.01
 TIME = np.arange(0, 2.0, DT)
@@ -393,17 +399,6 @@ def test_default_settings_let_a_slow_pin_fit_converge(tmp_path):
     """Regression: under the former cap of 3000 evaluations the second start of seed 1 on the pin dowel6 (the
     oracle's kept start there) stopped unconverged; it meets the stopping rule after about 3400. With the
     default settings the tolerance, not the cap, ends it."""
-    from dataclasses import replace
-
-    from conftest import compose_config
-
-    from pipe.data.dataset import load_dataset
-    from pipe.data.prepared import PreprocessSettings, prepare_part
-    from pipe.data.spec import load_spec
-    from pipe.pipeline import build_components
-    from pipe.synthetic import generate_dataset
-    from pipe.threads import threads_set_to
-
     cfg = compose_config(["domain=pins", "seed=1"])
     root = generate_dataset(tmp_path / "data", seed=0, parts=["dowel6"])
     dowel = prepare_part(load_dataset(root).parts["dowel6"], load_spec(root), PreprocessSettings.from_config(cfg.data))

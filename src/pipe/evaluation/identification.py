@@ -71,7 +71,7 @@ class IdentificationSettings:
     check_every: int = 20         # L-BFGS iterations between two convergence checks
     tolerance: float = 1e-4       # converged once check_every iterations lower the objective by less than this
     max_evaluations: int = 10000  # loss-and-gradient evaluations per start at most: a guard against a start
-                                  # that never settles; the tolerance ends every fit of the paper domains
+                                  # that never settles, not the stopping rule (BENCHMARKS.md)
     history: int = 20             # L-BFGS's memory: the last steps and gradient changes it keeps
     ridge: float = 0.1            # weight of the pull towards the neutral profile (see the module's docstring)
     cache: str | None = None      # a folder (relative: to the project root) to store fits in and reuse them
