@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
 
 from pipe.cli import main
 from pipe.data.domain import domain_from_config
@@ -43,6 +44,33 @@ def test_default_config_and_command_line_overrides(monkeypatch):
     assert cfg.domain.name == "conn" and list(cfg.domain.test) == ["usbb"]
     assert cfg.data.points == 2048
     assert cfg.data.dir == f"{ROOT}/data/synthetic"   # resolved from the project root, not the cwd
+
+
+# What pipe-paper.tex states of its setup ("Training Data & Preprocessing", "Network Architecture", "Training")
+PAPER_SETUP = {"data.points": 4096, "data.steady_samples": 1, "encoder.latent_dim": 32, "head.num_local_models": 10,
+               "stages.vae.epochs": 500, "stages.vae.batch_size": 10, "stages.vae.lr": 1e-4,
+               "stages.head.epochs": 100, "stages.head.batch_size": 10, "stages.head.lr": 2e-4}
+
+
+def _flat(cfg, prefix: str = "") -> dict:
+    items = {}
+    for key, value in cfg.items():
+        items.update(_flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+    return items
+
+
+def test_experiment_paper_pins_the_papers_setup(monkeypatch):
+    monkeypatch.setenv("PROJECT_ROOT", str(ROOT))
+    own = OmegaConf.load(ROOT / "conf/experiment/paper.yaml")
+    cfg = compose_config(["experiment=paper"])
+    for key, value in PAPER_SETUP.items():
+        assert OmegaConf.select(own, key) == value, key      # in the file itself, whatever the defaults
+        assert OmegaConf.select(cfg, key) == value, key
+    assert cfg.encoder._target_.endswith("PointNetVAE") and cfg.head._target_.endswith("GaussianHead")
+    assert cfg.model._target_.endswith("MDS2")
+    # the defaults differ from the paper in the number of points only (conf/experiment/paper.yaml, README)
+    paper, default = (_flat(OmegaConf.to_container(c)) for c in (cfg, compose_config([])))
+    assert {key for key in paper.keys() | default.keys() if paper.get(key) != default.get(key)} == {"data.points"}
 
 
 def test_a_test_part_may_not_leak_into_training():
