@@ -16,6 +16,7 @@ import pytest
 import yaml
 from conftest import ROOT, compose_config
 from omegaconf import OmegaConf
+from test_architecture import PACKAGE, imports, unit
 
 from pipe.errors import PipeError
 from pipe.params import (
@@ -71,6 +72,49 @@ def test_each_domain_stage_declares_every_parameter_it_reads():
     assert declared["train"] | declared["evaluate"] == shared
     assert shared - declared["train"] == {"evaluation"} and shared - declared["evaluate"] == {"trainer"}
     assert "runs/${item}" in stages["evaluate"]["do"]["deps"] and "evaluations" in stages["report"]["deps"]
+
+
+# Parts of src/pipe that train.py reaches (pipe.app's imports, followed) but that a domain's stage rightly
+# does not list: a change there cannot change the stage's output.
+NOT_STAGE_DEPENDENCIES = {
+    "__init__": "the package's version, an MLflow tag",
+    "cli": "console messages and the other commands",
+    "importing": "`pipe data import`, which no stage runs",
+    "predict": "predict.py",
+    "synthetic": "generates a missing dataset; the stages read the generate stage's",
+}
+STAGE_ONLY_EXCLUSIONS = {
+    "train": {"evaluation": "the evaluate stage's own; changing it must not retrain"},
+    "evaluate": {"training": "reaches the evaluation through runs/<domain>, a dependency that it rewrites"},
+}
+
+
+def package_units_reached_from(start: str) -> set[str]:
+    """The top-level modules and subpackages of pipe (layers of tests/test_architecture.py) that `start`
+    imports, directly or through others, at module level or inside functions."""
+    edges: dict[str, set[str]] = {}
+    for path in PACKAGE.rglob("*.py"):
+        source = unit(".".join(path.relative_to(PACKAGE.parent).with_suffix("").parts))
+        edges.setdefault(source, set()).update(unit(target) for _, target in imports(path, PACKAGE))
+    reached, todo = set(), [start]
+    while todo:
+        if (name := todo.pop()) not in reached:
+            reached.add(name)
+            todo += edges.get(name, ())
+    return reached
+
+
+def test_each_domain_stage_depends_on_the_code_it_runs():
+    """A module that train.py runs and a stage does not list would leave that stage's results stale when it
+    changes (src/pipe/machine.py was nearly missed): every part of pipe that pipe.app reaches is a dependency of
+    train@ and evaluate@ or named above with the reason it is not."""
+    reached = package_units_reached_from("app")
+    assert set(NOT_STAGE_DEPENDENCIES) <= reached    # no stale excuses
+    for name, only in STAGE_ONLY_EXCLUSIONS.items():
+        deps = set(dvc_yaml()["stages"][name]["do"]["deps"])
+        listed = {part for part in reached if f"src/pipe/{part}" in deps or f"src/pipe/{part}.py" in deps}
+        assert reached - listed == set(NOT_STAGE_DEPENDENCIES) | set(only), name
+        assert {"train.py", "plugins"} <= deps
 
 
 def write_params(path: Path, values: dict) -> Path:
