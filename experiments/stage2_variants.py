@@ -9,6 +9,10 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
   std          the head sees codes standardised by the training parts' mean and spread
   noise=S      training codes jittered by S x the training parts' spread per latent dimension
   sample=S     training codes drawn from the encoder's posterior, its standard deviation times S
+  last         the last epoch's head, not the one of the lowest validation loss
+  ema=H        the head's weights averaged exponentially over about H epochs (Lightning's EMAWeightAveraging,
+               decay 1 - 1 / (H x steps per epoch)); validated and kept as the average
+  cosine       the learning rate annealed from stages.head.lr to 0 by a cosine over the epochs
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/stage2_variants.py OUT.jsonl runs/conn/seed_0 ... \
       --variants default,noise=0.1
@@ -17,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import math
 import os
 import tempfile
 import time
@@ -24,6 +29,7 @@ from pathlib import Path
 
 import torch
 from common import load_encoder, load_run, score
+from lightning.pytorch.callbacks import EMAWeightAveraging
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
@@ -46,8 +52,9 @@ class Standardised(torch.nn.Module):
         return self.inner((z - self.m) / self.s, depth_max)
 
 
-def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.Tensor) -> type[HeadStage]:
-    """HeadStage with the variant's training codes and optimiser."""
+def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
+                  steps_per_epoch: int) -> type[HeadStage]:
+    """HeadStage with the variant's training codes, optimiser and callbacks."""
 
     class Stage(HeadStage):
         def _step(self, batch, split):
@@ -64,7 +71,16 @@ def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.
         def configure_optimizers(self):
             if kind == "wd":
                 return torch.optim.AdamW(self.model.head.parameters(), lr=self.lr, weight_decay=value)
+            if kind == "cosine":
+                optimiser = super().configure_optimizers()
+                return {"optimizer": optimiser,
+                        "lr_scheduler": torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=epochs)}
             return super().configure_optimizers()
+
+        def configure_callbacks(self):
+            if kind == "ema":
+                return [EMAWeightAveraging(decay=1.0 - 1.0 / (value * steps_per_epoch))]
+            return []
 
     return Stage
 
@@ -90,10 +106,17 @@ def main() -> None:
             head.load_state_dict(head0)
             standardised = Standardised(head, latents[: len(train)].mean(0), spread.clamp_min(1e-6))
             variant = model.with_head(standardised) if kind == "std" else model
-            fit_module.HeadStage = variant_stage(kind, float(value or 0.0), spread, logvars)
+            steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
+            fit_module.HeadStage = variant_stage(kind, float(value or 0.0), spread, logvars, cfg.stages.head.epochs,
+                                                 steps)
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 fit_module.fit_head(cfg, variant, latents, index, train, val, Path(tmp), False, [])
+                if kind == "last":
+                    state = torch.load(Path(tmp) / "checkpoints/head/last.ckpt", map_location="cpu",
+                                       weights_only=False)["state_dict"]
+                    variant.load_state_dict({k.removeprefix("model."): v for k, v in state.items()
+                                             if k.startswith("model.")})
             score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start}, cfg,
                   data, variant, latents, index)
 
