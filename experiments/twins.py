@@ -1,0 +1,82 @@
+"""Issue 9: does each test part have a close twin among the training parts, so that PIPE's head can say little
+more than the twin's profile? Measured on finished runs (their best stage-1 and stage-2 weights), per test
+part:
+
+- `distance`: its code's distance to the nearest training part's code, over the median distance between two
+  training parts' codes (1: as far from its twin as training parts are from each other);
+- `agree_nearest`: how closely `nearest`'s force matches PIPE's on the part's trials, as a FIT with PIPE's
+  force in place of the measurement, 100 (1 - ||F_nearest - F_pipe||^2 / ||F_pipe - mean||^2), the mean
+  over the trials;
+- `agree_second`: the same for the second-nearest training part's code (the scale `agree_nearest` is read on);
+- PIPE's and `nearest`'s FIT(F) against the measured force.
+
+Rows are printed and appended to OUT as JSON lines (docs/experiments.md). Usage (one thread):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/twins.py OUT.jsonl runs/conn/seed_0 ...
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import load_encoder, load_run
+
+from pipe.data.batches import stack_clouds
+from pipe.data.prepared import data_scales
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.methods import model_forces
+from pipe.evaluation.metrics import fit_percent
+from pipe.model.pipe_model import PIPEModel
+
+
+def agreement(forces: list[np.ndarray], reference: list[np.ndarray]) -> float:
+    """FIT [%] of `forces` against `reference`, trial by trial, then their mean (as the results average it)."""
+    return float(np.mean([fit_percent(r, f) for r, f in zip(reference, forces)]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", help="JSON lines file the rows are appended to")
+    ap.add_argument("runs", nargs="+", help="finished seed folders of train.py")
+    args = ap.parse_args()
+    for run in args.runs:
+        run_dir = Path(run)
+        cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+        load_encoder(encoder, run_dir)
+        train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
+        model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+        state = torch.load(run_dir / "checkpoints/head/best.ckpt", map_location="cpu", weights_only=True)
+        model.load_state_dict({k.removeprefix("model."): v for k, v in state["state_dict"].items()
+                               if k.startswith("model.")})
+        model.eval()
+        parts = train + val + test
+        index = {p.name: i for i, p in enumerate(parts)}
+        with torch.no_grad():
+            latents, _ = model.latent_distribution(stack_clouds(parts))
+        codes = latents[: len(train)]
+        pairwise = torch.cdist(codes, codes)
+        typical = float(pairwise[~torch.eye(len(train), dtype=torch.bool)].median())
+        ctx = EvalContext(model, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed, dict(cfg.evaluation),
+                          val=[], logvars=None)
+        for part in test:
+            z = latents[index[part.name]]
+            order = torch.cdist(z[None], codes)[0].argsort()
+            with torch.no_grad():
+                pipe = model_forces(ctx, model, z, part)
+                near, second = (model_forces(ctx, model, codes[i], part) for i in order[:2])
+            measured = [p.force for p in part.profiles]
+            row = {"run": str(run_dir), "part": part.name, "twin": train[int(order[0])].name,
+                   "distance": float(torch.dist(z, codes[order[0]])) / typical,
+                   "agree_nearest": agreement(near, pipe), "agree_second": agreement(second, pipe),
+                   "fit_pipe": agreement(pipe, measured), "fit_nearest": agreement(near, measured)}
+            print(json.dumps(row), flush=True)
+            with open(args.out, "a") as handle:
+                handle.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    main()
