@@ -38,6 +38,12 @@ def load_encoder(encoder: torch.nn.Module, run_dir: Path) -> None:
     encoder.load_state_dict({k.removeprefix("encoder."): v for k, v in state.items()})
 
 
+def load_head_stage(model: torch.nn.Module, checkpoint: Path) -> None:
+    """A stage-2 checkpoint's weights (its LightningModule's `model.` entries) into a PIPEModel."""
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)["state_dict"]
+    model.load_state_dict({k.removeprefix("model."): v for k, v in state.items() if k.startswith("model.")})
+
+
 def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
           index: dict[str, int]) -> None:
     """PIPE's and `nearest`'s FIT(F) on the validation and the test parts added to `row`, printed and

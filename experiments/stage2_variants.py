@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 import torch
-from common import load_encoder, load_run, score
+from common import load_encoder, load_head_stage, load_run, score
 from lightning.pytorch.callbacks import EMAWeightAveraging
 
 from pipe.data.batches import stack_clouds
@@ -113,10 +113,7 @@ def main() -> None:
             with tempfile.TemporaryDirectory() as tmp:
                 fit_module.fit_head(cfg, variant, latents, index, train, val, Path(tmp), False, [])
                 if kind == "last":
-                    state = torch.load(Path(tmp) / "checkpoints/head/last.ckpt", map_location="cpu",
-                                       weights_only=False)["state_dict"]
-                    variant.load_state_dict({k.removeprefix("model."): v for k, v in state.items()
-                                             if k.startswith("model.")})
+                    load_head_stage(variant, Path(tmp) / "checkpoints/head/last.ckpt")
             score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start}, cfg,
                   data, variant, latents, index)
 

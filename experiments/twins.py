@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import load_encoder, load_run
+from common import load_encoder, load_head_stage, load_run
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
@@ -48,9 +48,7 @@ def main() -> None:
         load_encoder(encoder, run_dir)
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         model = PIPEModel(encoder, head, dynamics, *data_scales(train))
-        state = torch.load(run_dir / "checkpoints/head/best.ckpt", map_location="cpu", weights_only=True)
-        model.load_state_dict({k.removeprefix("model."): v for k, v in state["state_dict"].items()
-                               if k.startswith("model.")})
+        load_head_stage(model, run_dir / "checkpoints/head/best.ckpt")
         model.eval()
         parts = train + val + test
         index = {p.name: i for i, p in enumerate(parts)}
