@@ -77,7 +77,7 @@ def test_each_domain_stage_declares_every_parameter_it_reads():
 # Parts of src/pipe that train.py reaches (pipe.app's imports, followed) but that a domain's stage rightly
 # does not list: a change there cannot change the stage's output.
 NOT_STAGE_DEPENDENCIES = {
-    "__init__": "the package's version, an MLflow tag",
+    "__init__": "the package's version, recorded in the model card and MLflow, not in any result",
     "cli": "console messages and the other commands",
     "importing": "`pipe data import`, which no stage runs",
     "predict": "predict.py",
@@ -85,7 +85,7 @@ NOT_STAGE_DEPENDENCIES = {
 }
 STAGE_ONLY_EXCLUSIONS = {
     "train": {"evaluation": "the evaluate stage's own; changing it must not retrain"},
-    "evaluate": {"training": "reaches the evaluation through runs/<domain>, a dependency that it rewrites"},
+    "evaluate": {"training": "a change to it retrains runs/<domain>, which the evaluate stage depends on"},
 }
 
 
