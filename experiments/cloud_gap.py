@@ -4,7 +4,8 @@ distance between two clouds of one mesh drawn with different seeds, averaged ove
 pair at its floor differs no more than two samplings of one part do. The pair's distance is taken between
 clouds of different seeds too (seed 0 of the first part, seed 1 of the second): one seed on two nearly equal
 meshes draws nearly the same points, which would hide the sampling's own spread. Clouds as the pipeline samples
-them (`pipe.data.preprocess.sample_point_cloud`, Poisson-disk elimination, centred).
+them (`pipe.data.preprocess.cloud_from_mesh`: the dataset's units and insertion axis, Poisson-disk
+elimination, centred).
 
   python experiments/cloud_gap.py data/synthetic dsub26:dsub15 displayport:hdmi --points 1024 4096
 """
@@ -15,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import trimesh
 
-from pipe.data.preprocess import sample_point_cloud
+from pipe.data.dataset import load_dataset
+from pipe.data.preprocess import cloud_from_mesh
+from pipe.data.spec import load_spec
 
 
 def mean_nn_distance(a: np.ndarray, b: np.ndarray) -> float:
@@ -28,17 +30,19 @@ def mean_nn_distance(a: np.ndarray, b: np.ndarray) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset", type=Path, help="a dataset folder (parts/<name>/mesh.stl)")
+    ap.add_argument("dataset", type=Path, help="a dataset folder")
     ap.add_argument("pairs", nargs="+", help="part pairs as a:b")
     ap.add_argument("--points", type=int, nargs="+", default=[1024])
     args = ap.parse_args()
     pairs = [tuple(pair.split(":")) for pair in args.pairs]
     names = sorted({name for pair in pairs for name in pair})
+    meshes, units = load_dataset(args.dataset, parts=names).parts, load_spec(args.dataset).mesh_units
     print("| points | " + " | ".join(f"{a} - {b}: distance (floor) [mm]" for a, b in pairs) + " |")
     print("| --- " * (len(pairs) + 1) + "|")
     for n in args.points:
-        clouds = {name: [sample_point_cloud(trimesh.load(args.dataset / "parts" / name / "mesh.stl"), n,
-                                            seed=seed).points for seed in (0, 1)] for name in names}
+        clouds = {name: [cloud_from_mesh(meshes[name].mesh_path, units, n, seed,
+                                         meshes[name].metadata.get("axis", "z")).points for seed in (0, 1)]
+                  for name in names}
         floor = {name: mean_nn_distance(*clouds[name]) for name in names}
         cells = [f"{mean_nn_distance(clouds[a][0], clouds[b][1]):.3f} ({np.mean([floor[a], floor[b]]):.3f})"
                  for a, b in pairs]
