@@ -46,12 +46,14 @@ def load_head_stage(model: torch.nn.Module, checkpoint: Path) -> None:
 
 def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
           index: dict[str, int]) -> None:
-    """PIPE's and `nearest`'s FIT(F) on the validation and the test parts added to `row`, printed and
-    appended to the JSON lines file `out`."""
-    for split in ("val", "test"):
+    """PIPE's and `nearest`'s FIT(F) on the validation and the test parts, and PIPE's on the training parts
+    (how well the head fits what it was trained on), added to `row`, printed and appended to the JSON lines
+    file `out`."""
+    for split in ("train", "val", "test"):
         ctx = EvalContext(model, latents, index, data.splits["train"], 1.0 / cfg.data.rate_hz, cfg.seed,
                           dict(cfg.evaluation), val=[], logvars=None)
-        results = evaluate_methods(ctx, data.splits[split], ["pipe", "nearest"])
+        methods = ["pipe"] if split == "train" else ["pipe", "nearest"]     # a training part is its own nearest
+        results = evaluate_methods(ctx, data.splits[split], methods)
         row[split] = {name: result.domain["fit_F"] for name, result in results.items()}
     print(json.dumps(row), flush=True)
     with open(out, "a") as handle:

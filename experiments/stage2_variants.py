@@ -13,6 +13,7 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
   ema=H        the head's weights averaged exponentially over about H epochs (Lightning's EMAWeightAveraging,
                decay 1 - 1 / (H x steps per epoch)); validated and kept as the average
   cosine       the learning rate annealed from stages.head.lr to 0 by a cosine over the epochs
+  epochs=E     E epochs instead of stages.head.epochs (the lowest validation loss kept, as by default)
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/stage2_variants.py OUT.jsonl runs/conn/seed_0 ... \
       --variants default,noise=0.1
@@ -107,11 +108,14 @@ def main() -> None:
             standardised = Standardised(head, latents[: len(train)].mean(0), spread.clamp_min(1e-6))
             variant = model.with_head(standardised) if kind == "std" else model
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
-            fit_module.HeadStage = variant_stage(kind, float(value or 0.0), spread, logvars, cfg.stages.head.epochs,
-                                                 steps)
+            run_cfg = copy.deepcopy(cfg)
+            if kind == "epochs":
+                run_cfg.stages.head.epochs = int(value)
+            fit_module.HeadStage = variant_stage(kind, float(value or 0.0), spread, logvars,
+                                                 run_cfg.stages.head.epochs, steps)
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
-                fit_module.fit_head(cfg, variant, latents, index, train, val, Path(tmp), False, [])
+                fit_module.fit_head(run_cfg, variant, latents, index, train, val, Path(tmp), False, [])
                 if kind == "last":
                     load_head_stage(variant, Path(tmp) / "checkpoints/head/last.ckpt")
             score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start}, cfg,
