@@ -44,6 +44,14 @@ def load_head_stage(model: torch.nn.Module, checkpoint: Path) -> None:
     model.load_state_dict({k.removeprefix("model."): v for k, v in state.items() if k.startswith("model.")})
 
 
+def pipe_fit(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
+             index: dict[str, int], split: str) -> float:
+    """PIPE's FIT(F) on a split's parts, as the evaluation reports it."""
+    ctx = EvalContext(model, latents, index, data.splits["train"], 1.0 / cfg.data.rate_hz, cfg.seed,
+                      dict(cfg.evaluation), val=[], logvars=None)
+    return evaluate_methods(ctx, data.splits[split], ["pipe"])["pipe"].domain["fit_F"]
+
+
 def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
           index: dict[str, int]) -> None:
     """PIPE's and `nearest`'s FIT(F) on the validation and the test parts, and PIPE's on the training parts

@@ -14,6 +14,8 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
                decay 1 - 1 / (H x steps per epoch)); validated and kept as the average
   cosine       the learning rate annealed from stages.head.lr to 0 by a cosine over the epochs
   epochs=E     E epochs instead of stages.head.epochs (the lowest validation loss kept, as by default)
+  select=fit   the head of the epoch with the highest FIT(F) of PIPE on the validation parts (the reported
+               metric), not of the lowest validation loss (a mean squared error pooled over the trials)
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/stage2_variants.py OUT.jsonl runs/conn/seed_0 ... \
       --variants default,noise=0.1
@@ -26,10 +28,11 @@ import math
 import os
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from common import load_encoder, load_head_stage, load_run, score
+from common import load_encoder, load_head_stage, load_run, pipe_fit, score
 from lightning.pytorch.callbacks import EMAWeightAveraging
 
 from pipe.data.batches import stack_clouds
@@ -54,10 +57,19 @@ class Standardised(torch.nn.Module):
 
 
 def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
-                  steps_per_epoch: int) -> type[HeadStage]:
-    """HeadStage with the variant's training codes, optimiser and callbacks."""
+                  steps_per_epoch: int, val_fit: Callable[[], float], kept: dict) -> type[HeadStage]:
+    """HeadStage with the variant's training codes, optimiser and callbacks; `select=fit` keeps in `kept`
+    the head's state of the epoch where `val_fit` was highest."""
 
     class Stage(HeadStage):
+        def on_validation_epoch_end(self):
+            if kind != "select" or self.trainer.sanity_checking:
+                return
+            fit = val_fit()
+            if fit > kept.get("kept_val_fit", -math.inf):
+                kept.update(kept_val_fit=fit, kept_epoch=self.current_epoch,
+                            state=copy.deepcopy(self.model.head.state_dict()))
+
         def _step(self, batch, split):
             z = self.latents[batch.part]
             if split == "train" and kind == "noise":
@@ -104,6 +116,8 @@ def main() -> None:
         spread = latents[: len(train)].std(0)
         for spec in args.variants.split(","):
             kind, _, value = spec.partition("=")
+            if kind == "select" and value != "fit":
+                raise SystemExit(f"unknown variant {spec!r}: the selection variant is select=fit")
             head.load_state_dict(head0)
             standardised = Standardised(head, latents[: len(train)].mean(0), spread.clamp_min(1e-6))
             variant = model.with_head(standardised) if kind == "std" else model
@@ -111,15 +125,20 @@ def main() -> None:
             run_cfg = copy.deepcopy(cfg)
             if kind == "epochs":
                 run_cfg.stages.head.epochs = int(value)
-            fit_module.HeadStage = variant_stage(kind, float(value or 0.0), spread, logvars,
-                                                 run_cfg.stages.head.epochs, steps)
+            kept: dict = {}
+            number = float(value) if value and kind != "select" else 0.0
+            fit_module.HeadStage = variant_stage(kind, number, spread, logvars,
+                                                 run_cfg.stages.head.epochs, steps,
+                                                 lambda: pipe_fit(cfg, data, variant, latents, index, "val"), kept)
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 fit_module.fit_head(run_cfg, variant, latents, index, train, val, Path(tmp), False, [])
                 if kind == "last":
                     load_head_stage(variant, Path(tmp) / "checkpoints/head/last.ckpt")
-            score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start}, cfg,
-                  data, variant, latents, index)
+            if kind == "select":
+                head.load_state_dict(kept.pop("state"))
+            score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start, **kept},
+                  cfg, data, variant, latents, index)
 
 if __name__ == "__main__":
     os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))

@@ -1,6 +1,7 @@
 """The markdown tables of docs/experiments.md from the scripts' JSON lines: per domain and variant, FIT(F)
-of PIPE on the validation parts (what chooses) and of PIPE and `nearest` on the test parts, and PIPE minus
-`nearest` seed by seed, each as mean ± standard deviation over the seeds (run folders).
+of PIPE on the training parts (where the rows have them), on the validation parts (what chooses) and of
+PIPE and `nearest` on the test parts, and PIPE minus `nearest` seed by seed, each as mean ± standard
+deviation over the seeds (run folders).
 
 usage: python experiments/summarise.py RESULTS.jsonl [...]
 """
@@ -30,10 +31,13 @@ def main(paths: list[str]) -> None:
     for row in rows:
         table[domain_of(row["run"])][row["variant"]].append(row)
     for domain, variants in table.items():
-        print(f"\n{domain}\n\n| variant | seeds | val: PIPE | test: PIPE | test: nearest | test: PIPE - nearest |")
-        print("| --- | --- | --- | --- | --- | --- |")
+        trained = all("train" in r for runs in variants.values() for r in runs)   # rows since the train column
+        print(f"\n{domain}\n\n| variant | seeds |{' train: PIPE |' if trained else ''} val: PIPE | test: PIPE | "
+              "test: nearest | test: PIPE - nearest |")
+        print("| --- | --- |" + " --- |" * (5 if trained else 4))
         for variant, runs in variants.items():
-            print(f"| {variant} | {len(runs)} | {spread([r['val']['pipe'] for r in runs])} | "
+            train = f" {spread([r['train']['pipe'] for r in runs])} |" if trained else ""
+            print(f"| {variant} | {len(runs)} |{train} {spread([r['val']['pipe'] for r in runs])} | "
                   f"{spread([r['test']['pipe'] for r in runs])} | {spread([r['test']['nearest'] for r in runs])} | "
                   f"{spread([r['test']['pipe'] - r['test']['nearest'] for r in runs])} |")
 
