@@ -16,6 +16,8 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
   epochs=E     E epochs instead of stages.head.epochs (the lowest validation loss kept, as by default)
   select=fit   the head of the epoch with the highest FIT(F) of PIPE on the validation parts (the reported
                metric), not of the lowest validation loss (a mean squared error pooled over the trials)
+  loss=nmse    trained and validated on each trial's squared error over its force's variance about its mean
+               (1 - FIT / 100 per trial), so that every trial weighs alike, not on the pooled squared error
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/stage2_variants.py OUT.jsonl runs/conn/seed_0 ... \
       --variants default,noise=0.1
@@ -56,6 +58,14 @@ class Standardised(torch.nn.Module):
         return self.inner((z - self.m) / self.s, depth_max)
 
 
+def normalised_mse(model: PIPEModel, z: torch.Tensor, batch) -> torch.Tensor:
+    """The mean over the batch's trials of sum (F_hat - F)^2 / sum (F - mean F)^2 over each trial's samples."""
+    mask = batch.mask.to(batch.force.dtype)
+    mean = (batch.force * mask).sum(1, keepdim=True) / mask.sum(1, keepdim=True)
+    error = ((model(z, batch.depth, batch.dt) - batch.force) ** 2 * mask).sum(1)
+    return (error / ((batch.force - mean) ** 2 * mask).sum(1)).mean()
+
+
 def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
                   steps_per_epoch: int, val_fit: Callable[[], float], kept: dict) -> type[HeadStage]:
     """HeadStage with the variant's training codes, optimiser and callbacks; `select=fit` keeps in `kept`
@@ -76,7 +86,7 @@ def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.
                 z = z + torch.randn_like(z) * spread * value
             if split == "train" and kind == "sample":
                 z = z + torch.randn_like(z) * torch.exp(0.5 * logvars[batch.part]) * value
-            loss = self.model.loss(z, batch)
+            loss = normalised_mse(self.model, z, batch) if kind == "loss" else self.model.loss(z, batch)
             check_finite(loss, f"{split} loss", self, "stage 2 (head)", "stages.head.lr")
             self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False)
             return loss
@@ -116,8 +126,8 @@ def main() -> None:
         spread = latents[: len(train)].std(0)
         for spec in args.variants.split(","):
             kind, _, value = spec.partition("=")
-            if kind == "select" and value != "fit":
-                raise SystemExit(f"unknown variant {spec!r}: the selection variant is select=fit")
+            if kind in ("select", "loss") and spec not in ("select=fit", "loss=nmse"):
+                raise SystemExit(f"unknown variant {spec!r}: the choices are select=fit and loss=nmse")
             head.load_state_dict(head0)
             standardised = Standardised(head, latents[: len(train)].mean(0), spread.clamp_min(1e-6))
             variant = model.with_head(standardised) if kind == "std" else model
@@ -126,7 +136,7 @@ def main() -> None:
             if kind == "epochs":
                 run_cfg.stages.head.epochs = int(value)
             kept: dict = {}
-            number = float(value) if value and kind != "select" else 0.0
+            number = float(value) if value and kind not in ("select", "loss") else 0.0
             fit_module.HeadStage = variant_stage(kind, number, spread, logvars,
                                                  run_cfg.stages.head.epochs, steps,
                                                  lambda: pipe_fit(cfg, data, variant, latents, index, "val"), kept)

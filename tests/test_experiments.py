@@ -26,8 +26,8 @@ def run_script(*args: str) -> str:
 def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
     run_script("stage2_variants.py", str(rows_file), str(trained_run.run_dir), "--variants",
-               "default,epochs=1,select=fit")
-    default, one_epoch, by_fit = (json.loads(line) for line in rows_file.read_text().splitlines())
+               "default,epochs=1,select=fit,loss=nmse")
+    default, one_epoch, by_fit, nmse = (json.loads(line) for line in rows_file.read_text().splitlines())
     assert (default["variant"], one_epoch["variant"]) == ("default", "epochs=1")
     # the head trained again from the run's own initial weights: the run's PIPE and nearest to the digit
     assert default["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
@@ -39,6 +39,8 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     assert by_fit["kept_epoch"] in (0, 1)
     assert by_fit["val"]["pipe"] == pytest.approx(by_fit["kept_val_fit"], abs=1e-9)
     assert by_fit["val"]["pipe"] >= default["val"]["pipe"] - 1e-9
+    # the per-trial normalised loss trains another head
+    assert nmse["variant"] == "loss=nmse" and nmse["test"]["pipe"] != pytest.approx(default["test"]["pipe"], abs=1e-6)
 
 
 def test_summarise_tables_each_domain_and_variant_over_the_seeds(tmp_path):
@@ -55,3 +57,19 @@ def test_summarise_tables_each_domain_and_variant_over_the_seeds(tmp_path):
     # a domain whose rows all hold the training parts' FIT gets that column too
     assert "| noise=0.3 | 1 | 90.00 ± 0.00 | 75.00 ± 0.00 | 68.00 ± 0.00 | 70.00 ± 0.00 | -2.00 ± 0.00 |" in printed
     assert "| variant | seeds | val: PIPE |" in printed and "| variant | seeds | train: PIPE | val: PIPE |" in printed
+
+
+def test_normalised_mse_weighs_each_trial_by_its_own_variance(monkeypatch):
+    import torch
+
+    monkeypatch.syspath_prepend(str(ROOT / "experiments"))
+    from stage2_variants import normalised_mse
+
+    from pipe.data.batches import TrialBatch
+
+    force = torch.tensor([[1.0, 3.0, 3.0], [10.0, 20.0, 30.0]])        # trial 0 padded after two samples
+    mask = torch.tensor([[True, True, False], [True, True, True]])
+    predicted = torch.tensor([[2.0, 3.0, 9.0], [10.0, 20.0, 20.0]])
+    batch = TrialBatch(torch.tensor([0, 1]), torch.zeros(2, 3), force, mask, 0.01)
+    # trial 0: error 1, variance sum 2 (mean 2); trial 1: error 100, variance sum 200 (mean 20)
+    assert float(normalised_mse(lambda z, depth, dt: predicted, None, batch)) == pytest.approx((1 / 2 + 100 / 200) / 2)
