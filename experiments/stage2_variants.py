@@ -18,6 +18,7 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
                metric), not of the lowest validation loss (a mean squared error pooled over the trials)
   loss=nmse    trained and validated on each trial's squared error over its force's variance about its mean
                (1 - FIT / 100 per trial), so that every trial weighs alike, not on the pooled squared error
+               (train.py's stages.head.loss=nmse)
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/stage2_variants.py OUT.jsonl runs/conn/seed_0 ... \
       --variants default,noise=0.1
@@ -58,14 +59,6 @@ class Standardised(torch.nn.Module):
         return self.inner((z - self.m) / self.s, depth_max)
 
 
-def normalised_mse(model: PIPEModel, z: torch.Tensor, batch) -> torch.Tensor:
-    """The mean over the batch's trials of sum (F_hat - F)^2 / sum (F - mean F)^2 over each trial's samples."""
-    mask = batch.mask.to(batch.force.dtype)
-    mean = (batch.force * mask).sum(1, keepdim=True) / mask.sum(1, keepdim=True)
-    error = ((model(z, batch.depth, batch.dt) - batch.force) ** 2 * mask).sum(1)
-    return (error / ((batch.force - mean) ** 2 * mask).sum(1)).mean()
-
-
 def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
                   steps_per_epoch: int, val_fit: Callable[[], float], kept: dict) -> type[HeadStage]:
     """HeadStage with the variant's training codes, optimiser and callbacks; `select=fit` keeps in `kept`
@@ -86,7 +79,7 @@ def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.
                 z = z + torch.randn_like(z) * spread * value
             if split == "train" and kind == "sample":
                 z = z + torch.randn_like(z) * torch.exp(0.5 * logvars[batch.part]) * value
-            loss = normalised_mse(self.model, z, batch) if kind == "loss" else self.model.loss(z, batch)
+            loss = self.model.loss(z, batch, "nmse" if kind == "loss" else "mse")
             check_finite(loss, f"{split} loss", self, "stage 2 (head)", "stages.head.lr")
             self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False)
             return loss

@@ -49,7 +49,8 @@ def test_default_config_and_command_line_overrides(monkeypatch):
 # What pipe-paper.tex states of its setup ("Training Data & Preprocessing", "Network Architecture", "Training")
 PAPER_SETUP = {"data.points": 4096, "data.steady_samples": 1, "encoder.latent_dim": 32, "head.num_local_models": 10,
                "stages.vae.epochs": 500, "stages.vae.batch_size": 10, "stages.vae.lr": 1e-4,
-               "stages.head.epochs": 100, "stages.head.batch_size": 10, "stages.head.lr": 2e-4}
+               "stages.head.epochs": 100, "stages.head.batch_size": 10, "stages.head.lr": 2e-4,
+               "stages.head.loss": "mse"}
 
 
 def _flat(cfg, prefix: str = "") -> dict:

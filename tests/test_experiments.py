@@ -58,18 +58,3 @@ def test_summarise_tables_each_domain_and_variant_over_the_seeds(tmp_path):
     assert "| noise=0.3 | 1 | 90.00 ± 0.00 | 75.00 ± 0.00 | 68.00 ± 0.00 | 70.00 ± 0.00 | -2.00 ± 0.00 |" in printed
     assert "| variant | seeds | val: PIPE |" in printed and "| variant | seeds | train: PIPE | val: PIPE |" in printed
 
-
-def test_normalised_mse_weighs_each_trial_by_its_own_variance(monkeypatch):
-    import torch
-
-    monkeypatch.syspath_prepend(str(ROOT / "experiments"))
-    from stage2_variants import normalised_mse
-
-    from pipe.data.batches import TrialBatch
-
-    force = torch.tensor([[1.0, 3.0, 3.0], [10.0, 20.0, 30.0]])        # trial 0 padded after two samples
-    mask = torch.tensor([[True, True, False], [True, True, True]])
-    predicted = torch.tensor([[2.0, 3.0, 9.0], [10.0, 20.0, 20.0]])
-    batch = TrialBatch(torch.tensor([0, 1]), torch.zeros(2, 3), force, mask, 0.01)
-    # trial 0: error 1, variance sum 2 (mean 2); trial 1: error 100, variance sum 200 (mean 20)
-    assert float(normalised_mse(lambda z, depth, dt: predicted, None, batch)) == pytest.approx((1 / 2 + 100 / 200) / 2)

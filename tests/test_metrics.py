@@ -41,3 +41,19 @@ def test_fit_of_the_derivative_uses_central_differences():
 
 def test_mean_metrics_average_each_key():
     assert mean_metrics([{"a": 1.0, "b": 4.0}, {"a": 3.0, "b": 0.0}]) == {"a": 2.0, "b": 2.0}
+
+
+def test_stage_two_normalised_loss_is_one_minus_fit_per_trial():
+    """stages.head.loss=nmse: each trial's squared error over its force's squared deviation from its mean,
+    padding excluded, averaged over the trials; so 1 - FIT / 100 trial by trial."""
+    import torch
+
+    from pipe.model.losses import masked_normalised_mse
+
+    force = torch.tensor([[1.0, 3.0, 3.0], [10.0, 20.0, 30.0]])        # trial 0 padded after two samples
+    mask = torch.tensor([[True, True, False], [True, True, True]])
+    predicted = torch.tensor([[2.0, 3.0, 9.0], [10.0, 20.0, 20.0]])
+    # trial 0: error 1, squared deviation 2 (mean 2); trial 1: error 100, squared deviation 200 (mean 20)
+    assert float(masked_normalised_mse(predicted, force, mask)) == pytest.approx((1 / 2 + 100 / 200) / 2)
+    fits = [fit_percent(force[k][mask[k]].numpy(), predicted[k][mask[k]].numpy()) for k in range(2)]
+    assert float(masked_normalised_mse(predicted, force, mask)) == pytest.approx(1 - np.mean(fits) / 100)

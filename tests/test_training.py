@@ -36,7 +36,7 @@ def test_paper_values_are_the_defaults():
     assert (cfg.encoder.latent_dim, cfg.head.num_local_models) == (32, 10)
     assert dict(cfg.stages.vae) | {} == {"epochs": 500, "batch_size": 10, "lr": 1e-4, "kl_weight": 1.0,
                                          "feature_dtype": "float32"}
-    assert dict(cfg.stages.head) == {"epochs": 100, "batch_size": 10, "lr": 2e-4}
+    assert dict(cfg.stages.head) == {"epochs": 100, "batch_size": 10, "lr": 2e-4, "loss": "mse"}
     assert (cfg.domain.name, cfg.encoder._target_.endswith("PointNetVAE"), cfg.model._target_.endswith("MDS2")) \
         == ("conn", True, True)
 
@@ -187,6 +187,21 @@ def test_bfloat16_features_only_while_training():
     encoder.eval().encode(clouds)
     assert seen == [torch.bfloat16, torch.float32, torch.float32] and mu_bf16.dtype == torch.float32
     assert torch.allclose(mu_bf16, mu_fp32, atol=0.05 * mu_fp32.abs().max().item())
+
+
+def test_an_unknown_head_loss_is_refused_before_stage_one(tiny_data, tmp_path):
+    result = run_train("experiment=smoke", "stages.head.loss=mae", f"data.dir={tiny_data}",
+                       f"hydra.run.dir={tmp_path}", *TINY_DOMAIN)
+    assert result.returncode != 0
+    assert "unknown stages.head.loss 'mae'; choose one of mse, nmse" in result.stderr
+    assert "Traceback" not in result.stderr and not (tmp_path / "checkpoints").exists()
+
+
+def test_the_normalised_head_loss_trains_another_head(tiny_data, tmp_path):
+    runs = [run_domain(smoke_config(tiny_data, tmp_path / loss, "mlflow.enabled=false", f"stages.head.loss={loss}"))
+            for loss in ("mse", "nmse")]
+    logs = [(tmp_path / loss / "logs/head/metrics.csv").read_text() for loss in ("mse", "nmse")]
+    assert logs[0] != logs[1] and all(np.isfinite(run.pipe.domain["fit_F"]) for run in runs)
 
 
 def test_an_unknown_feature_dtype_is_refused_clearly(tiny_data, tmp_path):

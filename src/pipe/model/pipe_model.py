@@ -11,7 +11,7 @@ from torch import nn
 
 from pipe.data.batches import TrialBatch
 from pipe.model.interfaces import DynamicModel, ParameterHead, ParameterProfile
-from pipe.model.losses import masked_mse
+from pipe.model.losses import masked_mse, masked_normalised_mse
 from pipe.model.vae import PointCloudVAE
 
 
@@ -69,6 +69,9 @@ class PIPEModel(nn.Module):
         """Quasi-static force (B, G) at depths (B, G) mm of trajectories that reach depth_max (B,) mm."""
         return self.dynamics.static_force(self.profile(z, depth_max)(depth), depth)
 
-    def loss(self, z: torch.Tensor, batch: TrialBatch) -> torch.Tensor:
-        """The head's loss (paper, L_reg): MSE of the simulated against the measured force, padding excluded."""
-        return masked_mse(self(z, batch.depth, batch.dt), batch.force, batch.mask)
+    def loss(self, z: torch.Tensor, batch: TrialBatch, kind: str = "mse") -> torch.Tensor:
+        """The head's loss, padding excluded: "mse" the paper's L_reg, the simulated against the measured force's
+        squared error pooled over all samples; "nmse" each trial's squared error over its force's variance,
+        averaged over the trials (`masked_normalised_mse`)."""
+        error = masked_normalised_mse if kind == "nmse" else masked_mse
+        return error(self(z, batch.depth, batch.dt), batch.force, batch.mask)

@@ -19,7 +19,7 @@ from pipe.data.batches import cloud_loader, trial_loader
 from pipe.data.prepared import PartData
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
-from pipe.training.stages import HeadStage, VAEStage
+from pipe.training.stages import HeadStage, VAEStage, check_head_loss
 from pipe.training.trainer import (
     checkpoint_dir,
     forget_epochs_after,
@@ -86,6 +86,11 @@ def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val:
                      cloud_loader(val, batch, False, cfg.seed) if val else None, run_dir, "vae", resume)
 
 
+def head_loss(cfg: DictConfig) -> str:
+    """The configured stage-2 loss, checked; "mse" for a run configured before the option existed."""
+    return check_head_loss(str(cfg.stages.head.get("loss", "mse")))
+
+
 def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: dict[str, int], train: list[PartData],
              val: list[PartData], run_dir: Path, resume: bool, loggers: list[Logger]) -> StageFit:
     """Stage 2 (`cfg.stages.head`): the encoder frozen, the head learns the training trials' force through
@@ -93,6 +98,6 @@ def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: di
     stage = cfg.stages.head
     trainer = make_trainer(cfg.trainer, run_dir, "head", stage.epochs, bool(val), loggers, resume)
     batch = per_process_batch(stage.batch_size, trainer)
-    return fit_stage(trainer, HeadStage(model, latents, lr=stage.lr),
+    return fit_stage(trainer, HeadStage(model, latents, lr=stage.lr, loss=head_loss(cfg)),
                      trial_loader(train, index, batch, True, cfg.seed),
                      trial_loader(val, index, batch, False, cfg.seed) if val else None, run_dir, "head", resume)

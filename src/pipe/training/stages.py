@@ -13,6 +13,7 @@ from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 
 FEATURE_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+HEAD_LOSSES = ("mse", "nmse")   # PIPEModel.loss: the paper's pooled squared error, or per trial normalised
 
 
 def check_finite(values: torch.Tensor, what: str, module: L.LightningModule, stage: str, setting: str) -> None:
@@ -22,6 +23,13 @@ def check_finite(values: torch.Tensor, what: str, module: L.LightningModule, sta
         raise PipeError(f"{stage}: the {what} became NaN or infinite at epoch {module.current_epoch}, step "
                         f"{module.global_step}; the weights diverged: lower the learning rate ({setting}) or "
                         "check the data (pipe data check)")
+
+
+def check_head_loss(name: str) -> str:
+    """The stage-2 loss `name` if it is one of HEAD_LOSSES; a clear error otherwise."""
+    if name not in HEAD_LOSSES:
+        raise PipeError(f"unknown stages.head.loss {name!r}; choose one of {', '.join(HEAD_LOSSES)}")
+    return name
 
 
 class VAEStage(L.LightningModule):
@@ -65,20 +73,21 @@ class VAEStage(L.LightningModule):
 
 
 class HeadStage(L.LightningModule):
-    """Stage 2: encoder frozen; the head is trained through the dynamic model against measured force (MSE).
+    """Stage 2: encoder frozen; the head is trained through the dynamic model against measured force (`loss`:
+    "mse", the paper's, or "nmse", see `PIPEModel.loss`), validated on the same loss.
 
     The frozen encoder's latent codes of the domain's parts are computed once (`latents`, one row per part)
     instead of re-encoding the same clouds at every step.
     """
 
-    def __init__(self, model: PIPEModel, latents: torch.Tensor, lr: float) -> None:
+    def __init__(self, model: PIPEModel, latents: torch.Tensor, lr: float, loss: str = "mse") -> None:
         super().__init__()
-        self.model, self.lr = model, lr
+        self.model, self.lr, self.loss_kind = model, lr, check_head_loss(loss)
         self.register_buffer("latents", latents)
         model.encoder.requires_grad_(False)
 
     def _step(self, batch: TrialBatch, split: str) -> torch.Tensor:
-        loss = self.model.loss(self.latents[batch.part], batch)
+        loss = self.model.loss(self.latents[batch.part], batch, self.loss_kind)
         check_finite(loss, f"{split} loss", self, "stage 2 (head)", "stages.head.lr")
         self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False,
                  prog_bar=split == "val", sync_dist=True)   # with trainer=ddp: the mean over the processes
