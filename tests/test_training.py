@@ -308,3 +308,17 @@ def test_an_unfinished_training_is_not_evaluated(tiny_data, tmp_path):
     (tmp_path / "trained/checkpoints/vae/best.ckpt").unlink()
     with pytest.raises(PipeError, match="has no trained stage 'vae'"):
         run_domain(smoke_config(tiny_data, tmp_path / "evaluated", "phase=evaluate", f"resume={tmp_path / 'trained'}"))
+
+
+def test_the_normalised_head_loss_refuses_a_constant_force_by_part():
+    from types import SimpleNamespace
+
+    from pipe.errors import PipeError
+    from pipe.training.fit import check_varying_force
+
+    trial = lambda force: SimpleNamespace(force=np.asarray(force, dtype=float))   # noqa: E731
+    parts = [SimpleNamespace(name="ok", profiles=[trial([0.0, 1.0])]),
+             SimpleNamespace(name="flat", profiles=[trial([0.0, 2.0]), trial([3.0, 3.0])])]
+    check_varying_force(parts[:1])
+    with pytest.raises(PipeError, match="constant in a trial of flat: use stages.head.loss=mse"):
+        check_varying_force(parts)

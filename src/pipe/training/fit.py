@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import lightning as L
+import numpy as np
 import torch
 from lightning.pytorch.loggers import Logger
 from omegaconf import DictConfig
@@ -17,6 +18,7 @@ from torch.utils.data import DataLoader
 
 from pipe.data.batches import cloud_loader, trial_loader
 from pipe.data.prepared import PartData
+from pipe.errors import PipeError
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 from pipe.training.stages import HeadStage, VAEStage, check_head_loss
@@ -91,11 +93,22 @@ def head_loss(cfg: DictConfig) -> str:
     return check_head_loss(str(cfg.stages.head.get("loss", "mse")))
 
 
+def check_varying_force(parts: list[PartData]) -> None:
+    """stages.head.loss=nmse divides each trial's error by its force's variance: refuse a trial whose force
+    is constant, naming its part, rather than a loss that becomes infinite."""
+    flat = sorted({part.name for part in parts for profile in part.profiles if np.ptp(profile.force) == 0})
+    if flat:
+        raise PipeError(f"stages.head.loss=nmse needs a force that varies in every trial; it is constant in a "
+                        f"trial of {', '.join(flat)}: use stages.head.loss=mse, or check the data (pipe data check)")
+
+
 def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: dict[str, int], train: list[PartData],
              val: list[PartData], run_dir: Path, resume: bool, loggers: list[Logger]) -> StageFit:
     """Stage 2 (`cfg.stages.head`): the encoder frozen, the head learns the training trials' force through
     the dynamic model; `latents` holds the parts' codes at the rows `index` gives."""
     stage = cfg.stages.head
+    if head_loss(cfg) == "nmse":
+        check_varying_force(train + val)
     trainer = make_trainer(cfg.trainer, run_dir, "head", stage.epochs, bool(val), loggers, resume)
     batch = per_process_batch(stage.batch_size, trainer)
     return fit_stage(trainer, HeadStage(model, latents, lr=stage.lr, loss=head_loss(cfg)),
