@@ -32,6 +32,7 @@ import os
 import tempfile
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -132,7 +133,7 @@ def main() -> None:
             number = float(value) if value and kind not in ("select", "loss") else 0.0
             fit_module.HeadStage = variant_stage(kind, number, spread, logvars,
                                                  run_cfg.stages.head.epochs, steps,
-                                                 lambda: pipe_fit(cfg, data, variant, latents, index, "val"), kept)
+                                                 partial(pipe_fit, cfg, data, variant, latents, index, "val"), kept)
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 fit_module.fit_head(run_cfg, variant, latents, index, train, val, Path(tmp), False, [])
