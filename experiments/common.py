@@ -44,12 +44,18 @@ def load_head_stage(model: torch.nn.Module, checkpoint: Path) -> None:
     model.load_state_dict({k.removeprefix("model."): v for k, v in state.items() if k.startswith("model.")})
 
 
-def pipe_fit(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
-             index: dict[str, int], split: str) -> float:
-    """PIPE's FIT(F) on a split's parts, as the evaluation reports it."""
+def fits(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor, index: dict[str, int],
+         split: str, methods: list[str]) -> dict[str, float]:
+    """Each method's FIT(F) on a split's parts, as the evaluation reports it."""
     ctx = EvalContext(model, latents, index, data.splits["train"], 1.0 / cfg.data.rate_hz, cfg.seed,
                       dict(cfg.evaluation), val=[], logvars=None)
-    return evaluate_methods(ctx, data.splits[split], ["pipe"])["pipe"].domain["fit_F"]
+    return {name: result.domain["fit_F"] for name, result in evaluate_methods(ctx, data.splits[split], methods).items()}
+
+
+def pipe_fit(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
+             index: dict[str, int], split: str) -> float:
+    """PIPE's FIT(F) on a split's parts."""
+    return fits(cfg, data, model, latents, index, split, ["pipe"])["pipe"]
 
 
 def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
@@ -58,11 +64,8 @@ def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIP
     (how well the head fits what it was trained on), added to `row`, printed and appended to the JSON lines
     file `out`."""
     for split in ("train", "val", "test"):
-        ctx = EvalContext(model, latents, index, data.splits["train"], 1.0 / cfg.data.rate_hz, cfg.seed,
-                          dict(cfg.evaluation), val=[], logvars=None)
         methods = ["pipe"] if split == "train" else ["pipe", "nearest"]     # a training part is its own nearest
-        results = evaluate_methods(ctx, data.splits[split], methods)
-        row[split] = {name: result.domain["fit_F"] for name, result in results.items()}
+        row[split] = fits(cfg, data, model, latents, index, split, methods)
     print(json.dumps(row), flush=True)
     with open(out, "a") as handle:
         handle.write(json.dumps(row) + "\n")

@@ -54,7 +54,7 @@ from pipe.tracking import (
     parent_run,
     tracked_run,
 )
-from pipe.training.fit import fit_head, fit_vae, head_loss
+from pipe.training.fit import check_varying_force, fit_head, fit_vae, head_loss
 from pipe.training.trainer import checkpoint_dir
 
 log = logging.getLogger(__name__)
@@ -223,7 +223,7 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     """Train and evaluate one domain as configured (or one `phase` of it); tracked as one MLflow run unless
     `mlflow.enabled` is off."""
     phase = check_phase(cfg)
-    head_loss(cfg)                      # an unknown stage-2 loss fails now, not after stage 1
+    loss = head_loss(cfg)               # an unknown stage-2 loss fails now, not after stage 1
     resume = cfg.resume is not None
     trained_dir = Path(cfg.resume or cfg.paths.output_dir)       # the checkpoints' folder
     run_dir = Path(cfg.paths.output_dir) if phase == "evaluate" else trained_dir   # where this run writes
@@ -239,6 +239,8 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     run_dir.mkdir(parents=True, exist_ok=True)
     L.seed_everything(cfg.seed, workers=True)
     data = load_domain(cfg)
+    if loss == "nmse" and phase != "evaluate":     # its trials must vary, checked before stage 1 too
+        check_varying_force(data.splits["train"] + data.splits["val"])
     encoder, head, dynamics = build_components(cfg)
     write_text_atomically(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     names = {kind: cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "head", "model")}

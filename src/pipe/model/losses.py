@@ -21,6 +21,9 @@ def masked_normalised_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.
     return (error / ((target - mean) ** 2 * weight).sum(1)).mean()
 
 
+FORCE_LOSSES = {"mse": masked_mse, "nmse": masked_normalised_mse}   # stage 2's choices (stages.head.loss)
+
+
 def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     """KL(q(z|x) || N(0, I)) per cloud, summed over the latent dimensions: (B,)."""
     return -0.5 * torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=-1)

@@ -11,7 +11,7 @@ from torch import nn
 
 from pipe.data.batches import TrialBatch
 from pipe.model.interfaces import DynamicModel, ParameterHead, ParameterProfile
-from pipe.model.losses import masked_mse, masked_normalised_mse
+from pipe.model.losses import FORCE_LOSSES
 from pipe.model.vae import PointCloudVAE
 
 
@@ -73,5 +73,4 @@ class PIPEModel(nn.Module):
         """The head's loss, padding excluded: "mse" the paper's L_reg, the simulated against the measured force's
         squared error pooled over all samples; "nmse" each trial's squared error over its force's variance,
         averaged over the trials (`masked_normalised_mse`)."""
-        error = masked_normalised_mse if kind == "nmse" else masked_mse
-        return error(self(z, batch.depth, batch.dt), batch.force, batch.mask)
+        return FORCE_LOSSES[kind](self(z, batch.depth, batch.dt), batch.force, batch.mask)

@@ -107,8 +107,6 @@ def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: di
     """Stage 2 (`cfg.stages.head`): the encoder frozen, the head learns the training trials' force through
     the dynamic model; `latents` holds the parts' codes at the rows `index` gives."""
     stage = cfg.stages.head
-    if head_loss(cfg) == "nmse":
-        check_varying_force(train + val)
     trainer = make_trainer(cfg.trainer, run_dir, "head", stage.epochs, bool(val), loggers, resume)
     batch = per_process_batch(stage.batch_size, trainer)
     return fit_stage(trainer, HeadStage(model, latents, lr=stage.lr, loss=head_loss(cfg)),

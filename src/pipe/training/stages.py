@@ -8,12 +8,11 @@ import torch
 from pipe.data.batches import TrialBatch
 from pipe.errors import PipeError
 from pipe.model.chamfer import chamfer, chamfer_and_mean_distance
-from pipe.model.losses import kl_divergence
+from pipe.model.losses import FORCE_LOSSES, kl_divergence
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 
 FEATURE_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
-HEAD_LOSSES = ("mse", "nmse")   # PIPEModel.loss: the paper's pooled squared error, or per trial normalised
 
 
 def check_finite(values: torch.Tensor, what: str, module: L.LightningModule, stage: str, setting: str) -> None:
@@ -26,9 +25,9 @@ def check_finite(values: torch.Tensor, what: str, module: L.LightningModule, sta
 
 
 def check_head_loss(name: str) -> str:
-    """The stage-2 loss `name` if it is one of HEAD_LOSSES; a clear error otherwise."""
-    if name not in HEAD_LOSSES:
-        raise PipeError(f"unknown stages.head.loss {name!r}; choose one of {', '.join(HEAD_LOSSES)}")
+    """The stage-2 loss `name` if it is one of `PIPEModel.loss`'s (FORCE_LOSSES); a clear error otherwise."""
+    if name not in FORCE_LOSSES:
+        raise PipeError(f"unknown stages.head.loss {name!r}; choose one of {', '.join(FORCE_LOSSES)}")
     return name
 
 
