@@ -19,6 +19,8 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
   loss=nmse    trained and validated on each trial's squared error over its force's variance about its mean
                (1 - FIT / 100 per trial), so that every trial weighs alike, not on the pooled squared error
                (train.py's stages.head.loss=nmse)
+  lr=L         learning rate L instead of stages.head.lr
+Variants combine with "+", e.g. loss=nmse+epochs=1000.
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/stage2_variants.py OUT.jsonl runs/conn/seed_0 ... \
       --variants default,noise=0.1
@@ -60,14 +62,15 @@ class Standardised(torch.nn.Module):
         return self.inner((z - self.m) / self.s, depth_max)
 
 
-def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
+def variant_stage(variant: dict[str, float], spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
                   steps_per_epoch: int, val_fit: Callable[[], float], kept: dict) -> type[HeadStage]:
-    """HeadStage with the variant's training codes, optimiser and callbacks; `select=fit` keeps in `kept`
-    the head's state of the epoch where `val_fit` was highest."""
+    """HeadStage with the variant's training codes, optimiser and callbacks (`variant`: each kind's value, 0
+    where it takes none); `select=fit` keeps in `kept` the head's state of the epoch where `val_fit` was
+    highest."""
 
     class Stage(HeadStage):
         def on_validation_epoch_end(self):
-            if kind != "select" or self.trainer.sanity_checking:
+            if "select" not in variant or self.trainer.sanity_checking:
                 return
             fit = val_fit()
             if fit > kept.get("kept_val_fit", -math.inf):
@@ -76,30 +79,46 @@ def variant_stage(kind: str, value: float, spread: torch.Tensor, logvars: torch.
 
         def _step(self, batch, split):
             z = self.latents[batch.part]
-            if split == "train" and kind == "noise":
-                z = z + torch.randn_like(z) * spread * value
-            if split == "train" and kind == "sample":
-                z = z + torch.randn_like(z) * torch.exp(0.5 * logvars[batch.part]) * value
-            loss = self.model.loss(z, batch, "nmse" if kind == "loss" else "mse")
+            if split == "train" and "noise" in variant:
+                z = z + torch.randn_like(z) * spread * variant["noise"]
+            if split == "train" and "sample" in variant:
+                z = z + torch.randn_like(z) * torch.exp(0.5 * logvars[batch.part]) * variant["sample"]
+            loss = self.model.loss(z, batch, "nmse" if "loss" in variant else "mse")
             check_finite(loss, f"{split} loss", self, "stage 2 (head)", "stages.head.lr")
             self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False)
             return loss
 
         def configure_optimizers(self):
-            if kind == "wd":
-                return torch.optim.AdamW(self.model.head.parameters(), lr=self.lr, weight_decay=value)
-            if kind == "cosine":
+            if "wd" in variant:
+                return torch.optim.AdamW(self.model.head.parameters(), lr=self.lr, weight_decay=variant["wd"])
+            if "cosine" in variant:
                 optimiser = super().configure_optimizers()
                 return {"optimizer": optimiser,
                         "lr_scheduler": torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=epochs)}
             return super().configure_optimizers()
 
         def configure_callbacks(self):
-            if kind == "ema":
-                return [EMAWeightAveraging(decay=1.0 - 1.0 / (value * steps_per_epoch))]
+            if "ema" in variant:
+                return [EMAWeightAveraging(decay=1.0 - 1.0 / (variant["ema"] * steps_per_epoch))]
             return []
 
     return Stage
+
+
+KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr")
+WORDS = {"select": "fit", "loss": "nmse"}     # the kinds whose value is a word, and the one each takes
+
+
+def parse_variant(spec: str) -> dict[str, float]:
+    """A variant spec ("noise=0.3", "loss=nmse+epochs=1000") as each kind's value (0 where it takes none)."""
+    variant: dict[str, float] = {}
+    for part in spec.split("+"):
+        kind, _, value = part.partition("=")
+        if kind not in KINDS or (kind in WORDS and value != WORDS[kind]):
+            raise SystemExit(f"unknown variant {part!r} in {spec!r}: see the kinds in this script's docstring")
+        if kind != "default":
+            variant[kind] = float(value) if value and kind not in WORDS else 0.0
+    return variant
 
 
 def main() -> None:
@@ -108,6 +127,7 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", help="finished seed folders of train.py")
     ap.add_argument("--variants", default="default", help="comma-separated, e.g. default,wd=0.01,noise=0.3")
     args = ap.parse_args()
+    variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]     # a typo fails before any run
     for run in args.runs:
         run_dir = Path(run)
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
@@ -118,31 +138,28 @@ def main() -> None:
         index = {p.name: i for i, p in enumerate(train + val + test)}
         latents, logvars = model.latent_distribution(stack_clouds(train + val + test))
         spread = latents[: len(train)].std(0)
-        for spec in args.variants.split(","):
-            kind, _, value = spec.partition("=")
-            if kind in ("select", "loss") and spec not in ("select=fit", "loss=nmse"):
-                raise SystemExit(f"unknown variant {spec!r}: the choices are select=fit and loss=nmse")
+        for spec, variant in variants:
             head.load_state_dict(head0)
             standardised = Standardised(head, latents[: len(train)].mean(0), spread.clamp_min(1e-6))
-            variant = model.with_head(standardised) if kind == "std" else model
+            candidate = model.with_head(standardised) if "std" in variant else model
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
             run_cfg = copy.deepcopy(cfg)
-            if kind == "epochs":
-                run_cfg.stages.head.epochs = int(value)
+            if "epochs" in variant:
+                run_cfg.stages.head.epochs = int(variant["epochs"])
+            if "lr" in variant:
+                run_cfg.stages.head.lr = variant["lr"]
             kept: dict = {}
-            number = float(value) if value and kind not in ("select", "loss") else 0.0
-            fit_module.HeadStage = variant_stage(kind, number, spread, logvars,
-                                                 run_cfg.stages.head.epochs, steps,
-                                                 partial(pipe_fit, cfg, data, variant, latents, index, "val"), kept)
+            fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
+                                                 partial(pipe_fit, cfg, data, candidate, latents, index, "val"), kept)
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
-                fit_module.fit_head(run_cfg, variant, latents, index, train, val, Path(tmp), False, [])
-                if kind == "last":
-                    load_head_stage(variant, Path(tmp) / "checkpoints/head/last.ckpt")
-            if kind == "select":
+                fit_module.fit_head(run_cfg, candidate, latents, index, train, val, Path(tmp), False, [])
+                if "last" in variant:
+                    load_head_stage(candidate, Path(tmp) / "checkpoints/head/last.ckpt")
+            if "select" in variant:
                 head.load_state_dict(kept.pop("state"))
             score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start, **kept},
-                  cfg, data, variant, latents, index)
+                  cfg, data, candidate, latents, index)
 
 if __name__ == "__main__":
     os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))

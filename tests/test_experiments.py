@@ -25,8 +25,8 @@ def run_script(*args: str) -> str:
 def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
     run_script("stage2_variants.py", str(rows_file), str(trained_run.run_dir), "--variants",
-               "default,epochs=1,select=fit,loss=nmse")
-    default, one_epoch, by_fit, nmse = (json.loads(line) for line in rows_file.read_text().splitlines())
+               "default,epochs=1,select=fit,loss=nmse,loss=nmse+epochs=1")
+    default, one_epoch, by_fit, nmse, combined = (json.loads(line) for line in rows_file.read_text().splitlines())
     assert (default["variant"], one_epoch["variant"]) == ("default", "epochs=1")
     # the head trained again from the run's own initial weights: the run's PIPE and nearest to the digit
     assert default["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
@@ -40,6 +40,19 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     assert by_fit["val"]["pipe"] >= default["val"]["pipe"] - 1e-9
     # the per-trial normalised loss trains another head
     assert nmse["variant"] == "loss=nmse" and nmse["test"]["pipe"] != pytest.approx(default["test"]["pipe"], abs=1e-6)
+    # variants combine: the normalised loss for one epoch is neither of its parts alone
+    assert combined["variant"] == "loss=nmse+epochs=1"
+    assert combined["test"]["pipe"] != pytest.approx(nmse["test"]["pipe"], abs=1e-6)
+    assert combined["test"]["pipe"] != pytest.approx(one_epoch["test"]["pipe"], abs=1e-6)
+
+
+@pytest.mark.parametrize("spec", ["bogus", "loss=mae", "noise=0.3+select=loss"])
+def test_stage2_variants_refuses_an_unknown_variant_before_any_run(spec, tmp_path):
+    done = subprocess.run([sys.executable, "stage2_variants.py", str(tmp_path / "rows.jsonl"), "no/such/run",
+                           "--variants", f"default,{spec}"], cwd=ROOT / "experiments", capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode != 0 and "unknown variant" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "rows.jsonl").exists()
 
 
 def test_summarise_tables_each_domain_and_variant_over_the_seeds(tmp_path):
@@ -56,3 +69,30 @@ def test_summarise_tables_each_domain_and_variant_over_the_seeds(tmp_path):
     # a domain whose rows all hold the training parts' FIT gets that column too
     assert "| noise=0.3 | 1 | 90.00 ± 0.00 | 75.00 ± 0.00 | 68.00 ± 0.00 | 70.00 ± 0.00 | -2.00 ± 0.00 |" in printed
     assert "| variant | seeds | val: PIPE |" in printed and "| variant | seeds | train: PIPE | val: PIPE |" in printed
+
+
+@pytest.mark.slow
+def test_part_cv_holds_out_each_non_test_part_in_turn(trained_run, tmp_path):
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("part_cv.py", str(rows_file), str(trained_run.run_dir), "--variants", "default,loss=nmse")
+    rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
+    # every training and validation part of the tiny domain held out once per variant; the test part never
+    assert sorted((row["held_out"], row["variant"]) for row in rows) == sorted(
+        (part, variant) for part in ("dsub9", "dsub15", "vga") for variant in ("default", "loss=nmse"))
+    by_case = {(row["held_out"], row["variant"]): row["fit"] for row in rows}
+    assert all(by_case[(part, "default")] != pytest.approx(by_case[(part, "loss=nmse")], abs=1e-6)
+               for part in ("dsub9", "dsub15", "vga"))
+
+
+def test_part_cv_table_averages_the_held_out_parts_per_seed(tmp_path):
+    fits = {("runs/pins/seed_0", "a"): (50.0, 60.0), ("runs/pins/seed_0", "b"): (70.0, 40.0),
+            ("runs/pins/seed_1", "a"): (30.0, 90.0), ("runs/pins/seed_1", "b"): (80.0, 10.0)}
+    rows = [{"run": run, "variant": variant, "held_out": part, "fit": fit}
+            for (run, part), pair in fits.items() for variant, fit in zip(("default", "loss=nmse"), pair)]
+    rows_file = tmp_path / "rows.jsonl"
+    rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    printed = run_script("part_cv.py", str(rows_file), "--table")
+    # default: seed means 60 and 55, median of 50, 70, 30, 80 = 60; nmse: seed means 50 and 50, median 50,
+    # above default in 2 of the 4 held-out cases (60 > 50, 90 > 30)
+    assert f"| pins | default | 2 | 57.50 ± {statistics.stdev([60.0, 55.0]):.2f} | 60.00 |  |" in printed
+    assert "| pins | loss=nmse | 2 | 50.00 ± 0.00 | 50.00 | 2 of 4 |" in printed

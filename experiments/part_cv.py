@@ -1,0 +1,113 @@
+"""Issue 9: stage-2 variants chosen by leave-one-part-out cross-validation over a domain's non-test parts.
+
+The paper domains hold 1 to 3 validation parts, too few to choose between stage-2 variants (a variant can win
+on one domain's validation parts and lose on another's by more than the seeds' spread). Here every training
+and validation part is held out in turn: the head is trained again (from the run's own initial weights, on
+the run's stage-1 encoder) on the other non-test parts, with no validation parts (the checkpoint of the
+lowest training loss is kept, the same rule for every variant), and PIPE's FIT(F) is taken on the held-out
+part. The test parts are never used. A variant's score per seed is the mean over the held-out parts; the table
+gives its mean and standard deviation over the seeds. Variants as in `stage2_variants.py` (e.g. loss=nmse).
+Usage (one thread, as the results were measured):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/part_cv.py OUT.jsonl runs/pins/seed_{0,1,2} \
+      --variants default,loss=nmse
+  python experiments/part_cv.py OUT.jsonl --table
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import math
+import os
+import statistics
+import tempfile
+import time
+from collections import defaultdict
+from dataclasses import replace
+from pathlib import Path
+
+from common import load_encoder, load_run, pipe_fit
+from stage2_variants import parse_variant, variant_stage
+
+from pipe.data.batches import stack_clouds
+from pipe.data.prepared import data_scales
+from pipe.model.pipe_model import PIPEModel
+from pipe.training import fit as fit_module
+
+
+def domain_of(run: str) -> str:
+    """The run folder's domain: runs/pins/seed_0 -> pins."""
+    return Path(run).parent.name
+
+
+def table(rows: list[dict]) -> str:
+    """Per domain and variant: the seeds' mean ± standard deviation of the mean FIT(F) over the held-out parts,
+    the median over every held-out part and seed, and in how many of those the variant's FIT beats `default`'s."""
+    fits: dict[tuple[str, str], dict[tuple[str, str], float]] = defaultdict(dict)
+    for row in rows:
+        fits[(domain_of(row["run"]), row["variant"])][(row["run"], row["held_out"])] = row["fit"]
+    lines = ["| domain | variant | seeds | FIT(F) [%] | median | above default |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for (domain, variant), cases in fits.items():
+        runs = sorted({run for run, _ in cases})
+        means = [statistics.fmean(fit for (r, _), fit in cases.items() if r == run) for run in runs]
+        spread = statistics.stdev(means) if len(means) > 1 else 0.0
+        default = fits.get((domain, "default"), {})
+        paired = [case for case in cases if case in default]
+        above = f"{sum(cases[c] > default[c] for c in paired)} of {len(paired)}" if variant != "default" else ""
+        lines.append(f"| {domain} | {variant} | {len(means)} | {statistics.fmean(means):.2f} ± {spread:.2f} | "
+                     f"{statistics.median(cases.values()):.2f} | {above} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
+    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
+    ap.add_argument("--variants", default="default,loss=nmse", help="comma-separated, as in stage2_variants.py")
+    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    args = ap.parse_args()
+    if args.table:
+        print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
+        return
+    variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]
+    for run in args.runs:
+        run_dir = Path(run)
+        cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+        load_encoder(encoder, run_dir)
+        head0 = copy.deepcopy(head.state_dict())
+        pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
+        index = {p.name: i for i, p in enumerate(pool + test)}
+        latents, logvars = PIPEModel(encoder, head, dynamics).latent_distribution(stack_clouds(pool + test))
+        for held_out in pool:
+            train = [p for p in pool if p is not held_out]
+            fold = replace(data, splits={"train": train, "val": [], "test": [held_out]})
+            model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+            spread = latents[[index[p.name] for p in train]].std(0)
+            steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
+            for spec, variant in variants:
+                if "select" in variant or "std" in variant or "last" in variant:
+                    raise SystemExit(f"{spec}: a fold has no validation parts to select on, and std/last are "
+                                     "not supported here")
+                head.load_state_dict(head0)
+                run_cfg = copy.deepcopy(cfg)
+                if "epochs" in variant:
+                    run_cfg.stages.head.epochs = int(variant["epochs"])
+                if "lr" in variant:
+                    run_cfg.stages.head.lr = variant["lr"]
+                fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
+                                                     lambda: math.nan, {})
+                start = time.perf_counter()
+                with tempfile.TemporaryDirectory() as tmp:
+                    fit_module.fit_head(run_cfg, model, latents, index, train, [], Path(tmp), False, [])
+                row = {"run": str(run_dir), "variant": spec, "held_out": held_out.name,
+                       "seconds": time.perf_counter() - start,
+                       "fit": pipe_fit(cfg, fold, model, latents, index, "test")}
+                print(json.dumps(row), flush=True)
+                with open(args.out, "a") as handle:
+                    handle.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    main()
