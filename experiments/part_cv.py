@@ -6,10 +6,11 @@ and validation part is held out in turn: the head is trained again (from the run
 the run's stage-1 encoder) on the other non-test parts, with no validation parts (the checkpoint of the
 lowest training loss is kept, the same rule for every variant), and PIPE's FIT(F) is taken on the held-out
 part. The test parts are never used. A variant's score per seed is the mean over the held-out parts; the table
-gives its mean and standard deviation over the seeds. Variants as in `stage2_variants.py` (e.g. loss=nmse).
+gives its mean and standard deviation over the seeds. Variants as in `stage2_variants.py` (e.g. loss=mse);
+`default` is the run's own configuration.
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/part_cv.py OUT.jsonl runs/pins/seed_{0,1,2} \
-      --variants default,loss=nmse
+      --variants default,loss=mse
   python experiments/part_cv.py OUT.jsonl --table
 """
 from __future__ import annotations
@@ -27,7 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from common import load_encoder, load_run, pipe_fit
-from stage2_variants import parse_variant, variant_stage
+from stage2_variants import parse_variant, variant_config, variant_stage
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
@@ -64,7 +65,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
     ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
-    ap.add_argument("--variants", default="default,loss=nmse", help="comma-separated, as in stage2_variants.py")
+    ap.add_argument("--variants", default="default,loss=mse", help="comma-separated, as in stage2_variants.py")
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     args = ap.parse_args()
     if args.table:
@@ -90,11 +91,7 @@ def main() -> None:
                     raise SystemExit(f"{spec}: a fold has no validation parts to select on, and std/last are "
                                      "not supported here")
                 head.load_state_dict(head0)
-                run_cfg = copy.deepcopy(cfg)
-                if "epochs" in variant:
-                    run_cfg.stages.head.epochs = int(variant["epochs"])
-                if "lr" in variant:
-                    run_cfg.stages.head.lr = variant["lr"]
+                run_cfg = variant_config(cfg, variant)
                 fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
                                                      lambda: math.nan, {})
                 start = time.perf_counter()

@@ -16,9 +16,10 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
   epochs=E     E epochs instead of stages.head.epochs (the lowest validation loss kept, as by default)
   select=fit   the head of the epoch with the highest FIT(F) of PIPE on the validation parts (the reported
                metric), not of the lowest validation loss (a mean squared error pooled over the trials)
-  loss=nmse    trained and validated on each trial's squared error over its force's variance about its mean
-               (1 - FIT / 100 per trial), so that every trial weighs alike, not on the pooled squared error
-               (train.py's stages.head.loss=nmse)
+  loss=NAME    trained and validated on stage 2's loss NAME instead of the run's own (train.py's
+               stages.head.loss): nmse, each trial's squared error over its force's variance about its mean
+               (1 - FIT / 100 per trial), so that every trial weighs alike; mse, the paper's squared error
+               pooled over all samples
   lr=L         learning rate L instead of stages.head.lr
 Variants combine with "+", e.g. loss=nmse+epochs=1000.
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
@@ -40,9 +41,11 @@ from pathlib import Path
 import torch
 from common import load_encoder, load_head_stage, load_run, pipe_fit, score
 from lightning.pytorch.callbacks import EMAWeightAveraging
+from omegaconf import DictConfig
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
+from pipe.model.losses import FORCE_LOSSES
 from pipe.model.pipe_model import PIPEModel
 from pipe.training import fit as fit_module
 from pipe.training.stages import HeadStage, check_finite
@@ -62,7 +65,7 @@ class Standardised(torch.nn.Module):
         return self.inner((z - self.m) / self.s, depth_max)
 
 
-def variant_stage(variant: dict[str, float], spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
+def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
                   steps_per_epoch: int, val_fit: Callable[[], float], kept: dict) -> type[HeadStage]:
     """HeadStage with the variant's training codes, optimiser and callbacks (`variant`: each kind's value, 0
     where it takes none); `select=fit` keeps in `kept` the head's state of the epoch where `val_fit` was
@@ -83,7 +86,7 @@ def variant_stage(variant: dict[str, float], spread: torch.Tensor, logvars: torc
                 z = z + torch.randn_like(z) * spread * variant["noise"]
             if split == "train" and "sample" in variant:
                 z = z + torch.randn_like(z) * torch.exp(0.5 * logvars[batch.part]) * variant["sample"]
-            loss = self.model.loss(z, batch, "nmse" if "loss" in variant else "mse")
+            loss = self.model.loss(z, batch, self.loss_kind)
             check_finite(loss, f"{split} loss", self, "stage 2 (head)", "stages.head.lr")
             self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False)
             return loss
@@ -106,19 +109,32 @@ def variant_stage(variant: dict[str, float], spread: torch.Tensor, logvars: torc
 
 
 KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr")
-WORDS = {"select": "fit", "loss": "nmse"}     # the kinds whose value is a word, and the one each takes
+WORDS = {"select": ("fit",), "loss": tuple(FORCE_LOSSES)}     # the kinds whose value is a word, and their words
 
 
-def parse_variant(spec: str) -> dict[str, float]:
-    """A variant spec ("noise=0.3", "loss=nmse+epochs=1000") as each kind's value (0 where it takes none)."""
-    variant: dict[str, float] = {}
+def parse_variant(spec: str) -> dict[str, float | str]:
+    """A variant spec ("noise=0.3", "loss=nmse+epochs=1000") as each kind's value: a number, a word (select,
+    loss), or 0 where it takes none."""
+    variant: dict[str, float | str] = {}
     for part in spec.split("+"):
         kind, _, value = part.partition("=")
-        if kind not in KINDS or (kind in WORDS and value != WORDS[kind]):
+        if kind not in KINDS or (kind in WORDS and value not in WORDS[kind]):
             raise SystemExit(f"unknown variant {part!r} in {spec!r}: see the kinds in this script's docstring")
         if kind != "default":
-            variant[kind] = float(value) if value and kind not in WORDS else 0.0
+            variant[kind] = value if kind in WORDS else float(value) if value else 0.0
     return variant
+
+
+def variant_config(cfg: DictConfig, variant: dict[str, float | str]) -> DictConfig:
+    """The run's config with the variant's stage-2 epochs, learning rate and loss."""
+    run_cfg = copy.deepcopy(cfg)
+    if "epochs" in variant:
+        run_cfg.stages.head.epochs = int(variant["epochs"])
+    if "lr" in variant:
+        run_cfg.stages.head.lr = float(variant["lr"])
+    if "loss" in variant:
+        run_cfg.stages.head.loss = variant["loss"]
+    return run_cfg
 
 
 def main() -> None:
@@ -143,11 +159,7 @@ def main() -> None:
             standardised = Standardised(head, latents[: len(train)].mean(0), spread.clamp_min(1e-6))
             candidate = model.with_head(standardised) if "std" in variant else model
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
-            run_cfg = copy.deepcopy(cfg)
-            if "epochs" in variant:
-                run_cfg.stages.head.epochs = int(variant["epochs"])
-            if "lr" in variant:
-                run_cfg.stages.head.lr = variant["lr"]
+            run_cfg = variant_config(cfg, variant)
             kept: dict = {}
             fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
                                                  partial(pipe_fit, cfg, data, candidate, latents, index, "val"), kept)

@@ -25,8 +25,8 @@ def run_script(*args: str) -> str:
 def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
     run_script("stage2_variants.py", str(rows_file), str(trained_run.run_dir), "--variants",
-               "default,epochs=1,select=fit,loss=nmse,loss=nmse+epochs=1")
-    default, one_epoch, by_fit, nmse, combined = (json.loads(line) for line in rows_file.read_text().splitlines())
+               "default,epochs=1,select=fit,loss=mse,loss=mse+epochs=1")
+    default, one_epoch, by_fit, mse, combined = (json.loads(line) for line in rows_file.read_text().splitlines())
     assert (default["variant"], one_epoch["variant"]) == ("default", "epochs=1")
     # the head trained again from the run's own initial weights: the run's PIPE and nearest to the digit
     assert default["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
@@ -38,15 +38,15 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     assert by_fit["kept_epoch"] in (0, 1)
     assert by_fit["val"]["pipe"] == pytest.approx(by_fit["kept_val_fit"], abs=1e-9)
     assert by_fit["val"]["pipe"] >= default["val"]["pipe"] - 1e-9
-    # the per-trial normalised loss trains another head
-    assert nmse["variant"] == "loss=nmse" and nmse["test"]["pipe"] != pytest.approx(default["test"]["pipe"], abs=1e-6)
-    # variants combine: the normalised loss for one epoch is neither of its parts alone
-    assert combined["variant"] == "loss=nmse+epochs=1"
-    assert combined["test"]["pipe"] != pytest.approx(nmse["test"]["pipe"], abs=1e-6)
+    # the paper's pooled loss trains another head than the run's own (the default, nmse)
+    assert mse["variant"] == "loss=mse" and mse["test"]["pipe"] != pytest.approx(default["test"]["pipe"], abs=1e-6)
+    # variants combine: the pooled loss for one epoch is neither of its parts alone
+    assert combined["variant"] == "loss=mse+epochs=1"
+    assert combined["test"]["pipe"] != pytest.approx(mse["test"]["pipe"], abs=1e-6)
     assert combined["test"]["pipe"] != pytest.approx(one_epoch["test"]["pipe"], abs=1e-6)
 
 
-@pytest.mark.parametrize("spec", ["bogus", "loss=mae", "noise=0.3+select=loss"])
+@pytest.mark.parametrize("spec", ["bogus", "loss=mae", "noise=0.3+select=loss", "loss"])
 def test_stage2_variants_refuses_an_unknown_variant_before_any_run(spec, tmp_path):
     done = subprocess.run([sys.executable, "stage2_variants.py", str(tmp_path / "rows.jsonl"), "no/such/run",
                            "--variants", f"default,{spec}"], cwd=ROOT / "experiments", capture_output=True,
@@ -74,13 +74,13 @@ def test_summarise_tables_each_domain_and_variant_over_the_seeds(tmp_path):
 @pytest.mark.slow
 def test_part_cv_holds_out_each_non_test_part_in_turn(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
-    run_script("part_cv.py", str(rows_file), str(trained_run.run_dir), "--variants", "default,loss=nmse")
+    run_script("part_cv.py", str(rows_file), str(trained_run.run_dir), "--variants", "default,loss=mse")
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     # every training and validation part of the tiny domain held out once per variant; the test part never
     assert sorted((row["held_out"], row["variant"]) for row in rows) == sorted(
-        (part, variant) for part in ("dsub9", "dsub15", "vga") for variant in ("default", "loss=nmse"))
+        (part, variant) for part in ("dsub9", "dsub15", "vga") for variant in ("default", "loss=mse"))
     by_case = {(row["held_out"], row["variant"]): row["fit"] for row in rows}
-    assert all(by_case[(part, "default")] != pytest.approx(by_case[(part, "loss=nmse")], abs=1e-6)
+    assert all(by_case[(part, "default")] != pytest.approx(by_case[(part, "loss=mse")], abs=1e-6)
                for part in ("dsub9", "dsub15", "vga"))
 
 
