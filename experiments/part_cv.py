@@ -72,6 +72,10 @@ def main() -> None:
         print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
         return
     variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]
+    for spec, variant in variants:     # before any run: what a fold without validation parts cannot do
+        if variant.keys() & {"select", "std", "last"}:
+            raise SystemExit(f"unsupported variant {spec!r}: a fold has no validation parts to select on, and "
+                             "std and last are not supported here")
     for run in args.runs:
         run_dir = Path(run)
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
@@ -87,9 +91,6 @@ def main() -> None:
             spread = latents[[index[p.name] for p in train]].std(0)
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
             for spec, variant in variants:
-                if "select" in variant or "std" in variant or "last" in variant:
-                    raise SystemExit(f"{spec}: a fold has no validation parts to select on, and std/last are "
-                                     "not supported here")
                 head.load_state_dict(head0)
                 run_cfg = variant_config(cfg, variant)
                 fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,

@@ -46,12 +46,15 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     assert combined["test"]["pipe"] != pytest.approx(one_epoch["test"]["pipe"], abs=1e-6)
 
 
-@pytest.mark.parametrize("spec", ["bogus", "loss=mae", "noise=0.3+select=loss", "loss"])
-def test_stage2_variants_refuses_an_unknown_variant_before_any_run(spec, tmp_path):
-    done = subprocess.run([sys.executable, "stage2_variants.py", str(tmp_path / "rows.jsonl"), "no/such/run",
+@pytest.mark.parametrize("script, spec, message", [
+    ("stage2_variants.py", "bogus", "unknown variant"), ("stage2_variants.py", "loss=mae", "unknown variant"),
+    ("stage2_variants.py", "noise=0.3+select=loss", "unknown variant"), ("stage2_variants.py", "loss", "unknown"),
+    ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
+def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(script, spec, message, tmp_path):
+    done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), "no/such/run",
                            "--variants", f"default,{spec}"], cwd=ROOT / "experiments", capture_output=True,
                           text=True, timeout=120)
-    assert done.returncode != 0 and "unknown variant" in done.stderr and "Traceback" not in done.stderr
+    assert done.returncode != 0 and message in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
 
 

@@ -31,7 +31,7 @@ def test_every_combination_composes_and_builds(encoder, model, domain):
     assert enc(cloud).recon.shape == cloud.shape
 
 
-def test_paper_values_are_the_defaults():
+def test_the_defaults_are_the_papers_values_but_stage_2s_loss():
     cfg = config(["paths.output_dir=unused"])
     assert (cfg.encoder.latent_dim, cfg.head.num_local_models) == (32, 10)
     assert dict(cfg.stages.vae) | {} == {"epochs": 500, "batch_size": 10, "lr": 1e-4, "kl_weight": 1.0,
