@@ -66,6 +66,11 @@ def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIP
     for split in ("train", "val", "test"):
         methods = ["pipe"] if split == "train" else ["pipe", "nearest"]     # a training part is its own nearest
         row[split] = fits(cfg, data, model, latents, index, split, methods)
+    append_row(out, row)
+
+
+def append_row(out: str, row: dict) -> None:
+    """A result row printed and appended to the JSON lines file `out` (one row per line, as it comes)."""
     print(json.dumps(row), flush=True)
     with open(out, "a") as handle:
         handle.write(json.dumps(row) + "\n")

@@ -27,7 +27,7 @@ from collections import defaultdict
 from dataclasses import replace
 from pathlib import Path
 
-from common import load_encoder, load_run, pipe_fit
+from common import append_row, load_encoder, load_run, pipe_fit
 from stage2_variants import parse_variant, variant_config, variant_stage
 
 from pipe.data.batches import stack_clouds
@@ -101,9 +101,7 @@ def main() -> None:
                 row = {"run": str(run_dir), "variant": spec, "held_out": held_out.name,
                        "seconds": time.perf_counter() - start,
                        "fit": pipe_fit(cfg, fold, model, latents, index, "test")}
-                print(json.dumps(row), flush=True)
-                with open(args.out, "a") as handle:
-                    handle.write(json.dumps(row) + "\n")
+                append_row(args.out, row)
 
 
 if __name__ == "__main__":

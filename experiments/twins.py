@@ -16,13 +16,12 @@ Rows are printed and appended to OUT as JSON lines (docs/experiments.md). Usage 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import load_encoder, load_head_stage, load_run
+from common import append_row, load_encoder, load_head_stage, load_run
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
@@ -70,9 +69,7 @@ def main() -> None:
                    "distance": float(torch.dist(z, codes[order[0]])) / typical,
                    "agree_nearest": agreement(near, pipe), "agree_second": agreement(second, pipe),
                    "fit_pipe": agreement(pipe, measured), "fit_nearest": agreement(near, measured)}
-            print(json.dumps(row), flush=True)
-            with open(args.out, "a") as handle:
-                handle.write(json.dumps(row) + "\n")
+            append_row(args.out, row)
 
 
 if __name__ == "__main__":
