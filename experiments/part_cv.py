@@ -16,7 +16,6 @@ Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import math
 import os
@@ -28,7 +27,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from common import append_row, load_encoder, load_run, pipe_fit
-from stage2_variants import parse_variant, variant_config, variant_stage
+from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
+from stage2_variants import parse_variant, variant_config, variant_head, variant_stage
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
@@ -67,6 +67,8 @@ def main() -> None:
     ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
     ap.add_argument("--variants", default="default,loss=mse", help="comma-separated, as in stage2_variants.py")
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap.add_argument("--fits", default=FITS, help="folder for the identified profiles of pretrain=S (relative: to "
+                    "the project root)")
     args = ap.parse_args()
     if args.table:
         print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
@@ -80,18 +82,25 @@ def main() -> None:
         run_dir = Path(run)
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
         load_encoder(encoder, run_dir)
-        head0 = copy.deepcopy(head.state_dict())
+        heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
         pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
         index = {p.name: i for i, p in enumerate(pool + test)}
         latents, logvars = PIPEModel(encoder, head, dynamics).latent_distribution(stack_clouds(pool + test))
+        targets = (profile_targets(cfg, PIPEModel(encoder, head, dynamics), latents, index, pool, args.fits)
+                   if any("pretrain" in variant for _, variant in variants) else None)
         for held_out in pool:
             train = [p for p in pool if p is not held_out]
             fold = replace(data, splits={"train": train, "val": [], "test": [held_out]})
-            model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+            scales = data_scales(train)
             spread = latents[[index[p.name] for p in train]].std(0)
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
+            kept = [i for i, p in enumerate(pool) if p is not held_out]
             for spec, variant in variants:
-                head.load_state_dict(head0)
+                trained, initial = heads[spec]
+                trained.load_state_dict(initial)
+                model = PIPEModel(encoder, trained, dynamics, *scales)
+                if "pretrain" in variant:
+                    pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
                 run_cfg = variant_config(cfg, variant)
                 fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
                                                      lambda: math.nan, {})

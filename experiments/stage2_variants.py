@@ -21,6 +21,11 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
                (1 - FIT / 100 per trial), so that every trial weighs alike; mse, the paper's squared error
                pooled over all samples
   lr=L         learning rate L instead of stages.head.lr
+  hidden=H     a head of hidden width H instead of the configured one (head.hidden), built and seeded as
+               train.py builds it
+  local=N      a head of N local models per parameter instead of the configured number (head.num_local_models)
+  pretrain=S   the head first takes S Adam steps towards the training parts' identified profiles (gpr's
+               targets: profile_pretraining.py), then stage 2 as usual
 Variants combine with "+", e.g. loss=nmse+epochs=1000.
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/stage2_variants.py OUT.jsonl runs/conn/seed_0 ... \
@@ -38,15 +43,19 @@ from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
+import lightning as L
 import torch
 from common import load_encoder, load_head_stage, load_run, pipe_fit, score
 from lightning.pytorch.callbacks import EMAWeightAveraging
 from omegaconf import DictConfig
+from profile_pretraining import FITS, pretrain_head, profile_targets
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
+from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import FORCE_LOSSES
 from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_components
 from pipe.training import fit as fit_module
 from pipe.training.stages import HeadStage, check_finite
 
@@ -108,7 +117,9 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
     return Stage
 
 
-KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr")
+KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr",
+         "pretrain", "hidden", "local")
+HEAD_SIZES = {"hidden": "hidden", "local": "num_local_models"}    # variant kind: the head's option it sets
 WORDS = {"select": ("fit",), "loss": tuple(FORCE_LOSSES)}     # the kinds whose value is a word, and their words
 
 
@@ -137,27 +148,48 @@ def variant_config(cfg: DictConfig, variant: dict[str, float | str]) -> DictConf
     return run_cfg
 
 
+def variant_head(cfg: DictConfig, variant: dict[str, float | str],
+                 head: ParameterHead) -> tuple[ParameterHead, dict[str, torch.Tensor]]:
+    """The head a variant trains and its initial weights: the run's own `head`, or for hidden=H and local=N a
+    head of that size, built and seeded as train.py builds its components."""
+    sizes = {HEAD_SIZES[kind]: int(value) for kind, value in variant.items() if kind in HEAD_SIZES}
+    if sizes:
+        sized = copy.deepcopy(cfg)
+        sized.head.update(sizes)
+        L.seed_everything(cfg.seed, workers=True)
+        head = build_components(sized)[1]
+    return head, copy.deepcopy(head.state_dict())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
     ap.add_argument("runs", nargs="+", help="finished seed folders of train.py")
     ap.add_argument("--variants", default="default", help="comma-separated, e.g. default,wd=0.01,noise=0.3")
+    ap.add_argument("--fits", default=FITS, help="folder for the identified profiles of pretrain=S (relative: to "
+                    "the project root)")
     args = ap.parse_args()
     variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]     # a typo fails before any run
     for run in args.runs:
         run_dir = Path(run)
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
         load_encoder(encoder, run_dir)
-        head0 = copy.deepcopy(head.state_dict())
+        heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         model = PIPEModel(encoder, head, dynamics, *data_scales(train))
         index = {p.name: i for i, p in enumerate(train + val + test)}
         latents, logvars = model.latent_distribution(stack_clouds(train + val + test))
         spread = latents[: len(train)].std(0)
+        targets = (profile_targets(cfg, model, latents, index, train, args.fits)
+                   if any("pretrain" in variant for _, variant in variants) else None)
         for spec, variant in variants:
-            head.load_state_dict(head0)
-            standardised = Standardised(head, latents[: len(train)].mean(0), spread.clamp_min(1e-6))
-            candidate = model.with_head(standardised) if "std" in variant else model
+            trained, initial = heads[spec]
+            trained.load_state_dict(initial)
+            base = model.with_head(trained)
+            if "pretrain" in variant:
+                pretrain_head(base, targets, int(variant["pretrain"]))
+            standardised = Standardised(trained, latents[: len(train)].mean(0), spread.clamp_min(1e-6))
+            candidate = base.with_head(standardised) if "std" in variant else base
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
             run_cfg = variant_config(cfg, variant)
             kept: dict = {}
@@ -169,7 +201,7 @@ def main() -> None:
                 if "last" in variant:
                     load_head_stage(candidate, Path(tmp) / "checkpoints/head/last.ckpt")
             if "select" in variant:
-                head.load_state_dict(kept.pop("state"))
+                trained.load_state_dict(kept.pop("state"))
             score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start, **kept},
                   cfg, data, candidate, latents, index)
 

@@ -24,9 +24,10 @@ def run_script(*args: str) -> str:
 @pytest.mark.slow
 def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
-    run_script("stage2_variants.py", str(rows_file), str(trained_run.run_dir), "--variants",
-               "default,epochs=1,select=fit,loss=mse,loss=mse+epochs=1")
-    default, one_epoch, by_fit, mse, combined = (json.loads(line) for line in rows_file.read_text().splitlines())
+    run_script("stage2_variants.py", str(rows_file), str(trained_run.run_dir), "--fits", str(tmp_path / "fits"),
+               "--variants", "default,epochs=1,select=fit,loss=mse,loss=mse+epochs=1,hidden=16,local=3,pretrain=20")
+    default, one_epoch, by_fit, mse, combined, *others = (json.loads(line)
+                                                          for line in rows_file.read_text().splitlines())
     assert (default["variant"], one_epoch["variant"]) == ("default", "epochs=1")
     # the head trained again from the run's own initial weights: the run's PIPE and nearest to the digit
     assert default["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
@@ -44,6 +45,10 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     assert combined["variant"] == "loss=mse+epochs=1"
     assert combined["test"]["pipe"] != pytest.approx(mse["test"]["pipe"], abs=1e-6)
     assert combined["test"]["pipe"] != pytest.approx(one_epoch["test"]["pipe"], abs=1e-6)
+    # a head of another size, and one pre-trained on the identified profiles (stored in --fits), is another head
+    assert [row["variant"] for row in others] == ["hidden=16", "local=3", "pretrain=20"]
+    assert all(row["test"]["pipe"] != pytest.approx(default["test"]["pipe"], abs=1e-6) for row in others)
+    assert len(list((tmp_path / "fits").rglob("*.pt"))) == 2       # the two training parts, dsub9 and dsub15
 
 
 @pytest.mark.parametrize("script, spec, message", [
@@ -56,6 +61,31 @@ def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(scri
                           text=True, timeout=120)
     assert done.returncode != 0 and message in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
+
+
+def test_pretraining_brings_the_heads_profiles_to_the_targets():
+    """The pre-training of `pretrain=S` fits the head's log profiles to targets another head of the same
+    structure produces, which it can reach exactly."""
+    import torch
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from profile_pretraining import ProfileTargets, pretrain_head
+
+    from pipe.model.pipe_model import PIPEModel
+    from pipe.plugins.head.gaussian import GaussianHead
+    from pipe.plugins.model.mds2 import MDS2
+
+    torch.manual_seed(0)
+    target_model, model = (PIPEModel(None, GaussianHead(8, 4, hidden=16), MDS2(), 5.0, 20.0) for _ in range(2))
+    z, depth_max = torch.randn(6, 8), torch.linspace(8.0, 20.0, 6)
+    depth = torch.linspace(0.0, 1.0, 21)[None] * depth_max[:, None]
+    with torch.no_grad():
+        targets = ProfileTargets(z, depth_max, depth, target_model.profile(z, depth_max)(depth).log())
+        before = (model.profile(z, depth_max)(depth).log() - targets.log_theta).pow(2).mean().item()
+    after = pretrain_head(model, targets, 300)
+    with torch.no_grad():
+        assert (model.profile(z, depth_max)(depth).log() - targets.log_theta).pow(2).mean().item() == \
+            pytest.approx(after, rel=0.5)
+    assert after < 0.05 * before
 
 
 def test_summarise_tables_each_domain_and_variant_over_the_seeds(tmp_path):
