@@ -85,16 +85,17 @@ def main() -> None:
         heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
         pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
         index = {p.name: i for i, p in enumerate(pool + test)}
-        latents, logvars = PIPEModel(encoder, head, dynamics).latent_distribution(stack_clouds(pool + test))
-        targets = (profile_targets(cfg, PIPEModel(encoder, head, dynamics), latents, index, pool, args.fits)
+        unscaled = PIPEModel(encoder, head, dynamics)
+        latents, logvars = unscaled.latent_distribution(stack_clouds(pool + test))
+        targets = (profile_targets(cfg, unscaled, latents, index, pool, args.fits)
                    if any("pretrain" in variant for _, variant in variants) else None)
         for held_out in pool:
-            train = [p for p in pool if p is not held_out]
+            kept = [i for i, p in enumerate(pool) if p is not held_out]
+            train = [pool[i] for i in kept]
             fold = replace(data, splits={"train": train, "val": [], "test": [held_out]})
             scales = data_scales(train)
             spread = latents[[index[p.name] for p in train]].std(0)
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
-            kept = [i for i, p in enumerate(pool) if p is not held_out]
             for spec, variant in variants:
                 trained, initial = heads[spec]
                 trained.load_state_dict(initial)
