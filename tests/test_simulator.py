@@ -261,27 +261,43 @@ def test_an_unknown_backend_is_refused():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
-def test_cuda_tensors_take_the_torch_path_and_agree():
+@pytest.mark.parametrize("name", ["compiled", "torch"])
+def test_cuda_tensors_give_cuda_results_that_agree_with_the_cpu(name):
+    """"compiled" runs the kernels on CPU copies (what "auto" does with a training batch on a GPU), "torch" the
+    loop on the GPU: both agree with the compiled kernels on the CPU."""
     a, b, u = mds2_system(3, 100)
-    on_gpu = simulate_with("auto", a.cuda(), b.cuda(), u.cuda(), 1e-3)
+    on_gpu = simulate_with(name, a.cuda(), b.cuda(), u.cuda(), 1e-3)
     assert on_gpu.device.type == "cuda"
     torch.testing.assert_close(on_gpu.cpu(), simulate_with("compiled", a, b, u, 1e-3), rtol=1e-9, atol=1e-9)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
-def test_cuda_gradients_agree_with_the_compiled_kernels_and_pass_gradcheck():
-    """What a GPU training differentiates: the torch path on CUDA tensors, against the compiled CPU adjoint."""
-    a, b, u = mds2_system(3, 200)
+def test_the_compiled_discretisation_and_recurrence_on_cuda_tensors_agree_with_the_cpu(monkeypatch):
+    monkeypatch.setattr(ltv, "_backend", "compiled")
+    a, b, u = mds2_system(2, 50)
+    phi, gamma = ltv.discretize(a.cuda(), b.cuda(), 1e-3)
+    states = ltv.recurrence(phi, gamma, u.cuda())
+    assert {phi.device.type, gamma.device.type, states.device.type} == {"cuda"}
+    torch.testing.assert_close(states.cpu(), ltv.recurrence(*ltv.discretize(a, b, 1e-3), u), rtol=0, atol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+@pytest.mark.parametrize("name", ["auto", "compiled", "torch"])
+def test_cuda_gradients_agree_with_the_compiled_kernels_and_pass_gradcheck(name):
+    """What a GPU training differentiates (CUDA tensors, gradients back on the GPU), against the compiled CPU
+    adjoint."""
+    a, b, u = mds2_system(3, 1000)     # 3000 steps: "auto" takes the compiled kernels
     grads = {}
-    for device, name in (("cuda", "auto"), ("cpu", "compiled")):
+    for device, backend in (("cuda", name), ("cpu", "compiled")):
         inputs = [t.to(device).requires_grad_() for t in (a, b, u)]
-        states = simulate_with(name, *inputs, 1e-3)
+        states = simulate_with(backend, *inputs, 1e-3)
         (states[..., 0] * torch.linspace(-1, 2, states.shape[1], dtype=states.dtype, device=device)).sum().backward()
+        assert all(t.grad.device.type == device for t in inputs)
         grads[device] = [t.grad.cpu() for t in inputs]
     for got, expected in zip(grads["cuda"], grads["cpu"]):
         assert (got - expected).abs().max() <= 1e-6 * expected.abs().max()
     small = [t[:1, :20].cuda().requires_grad_() for t in (a, b, u)]
-    assert torch.autograd.gradcheck(lambda *x: simulate_with("auto", *x, 1e-3), small)
+    assert torch.autograd.gradcheck(lambda *x: simulate_with(name, *x, 1e-3), small)
 
 
 def test_auto_compiles_a_training_batch(monkeypatch):

@@ -6,20 +6,26 @@ positive coefficients of a mass-spring-damper) the step matrix has spectral radi
 stiffness, so the recursion cannot blow up; it is differentiable and batched.
 
 Two implementations give the same numbers (tests/test_simulator.py):
-- "compiled" (`pipe.model.ltv_numba`): numba kernels with exact adjoint backward passes; CPU tensors;
-- "torch": `torch.linalg.matrix_exp` and a Python loop over time; any device, the reference.
-The backend is "auto" by default: compiled for CPU tensors of at least AUTO_COMPILED_MIN_STEPS steps in all
+- "compiled" (`pipe.model.ltv_numba`): numba kernels with exact adjoint backward passes; they run on the CPU,
+  and tensors on another device (a GPU) are copied to it and the results back, autograd carrying the
+  gradients across the copies;
+- "torch": `torch.linalg.matrix_exp` and a Python loop over time; on the tensors' own device, the reference.
+The backend is "auto" by default: compiled for tensors of at least AUTO_COMPILED_MIN_STEPS steps in all
 when numba imports, torch otherwise (a single trajectory of up to 20 s at 100 Hz, as predict.py simulates,
 takes the loop a few ms, less than loading the compiled kernels, about 1 s once per process; a training
-batch of 10 trials is always above it). Choose one with `set_backend`,
-the `PIPE_SIMULATOR` environment variable or train.py's `simulator=` option.
+batch of 10 trials is always above it). On a GPU the loop launches a few small kernels per time step, forward
+and backward: with it, stage 2 of conn took 263 s on an H200 against 12 s on two CPU cores (BENCHMARKS.md),
+so CUDA tensors take the compiled kernels too. Choose one with `set_backend`, the `PIPE_SIMULATOR`
+environment variable or train.py's `simulator=` option.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from functools import cache
 from types import ModuleType
+from typing import Any
 
 import torch
 
@@ -61,9 +67,11 @@ def _compiled() -> ModuleType | None:
 
 
 def _use_compiled(steps: int, *tensors: torch.Tensor) -> bool:
-    """Compiled for CPU float32/float64 tensors unless "torch" is chosen ("auto": from AUTO_COMPILED_MIN_STEPS
-    steps); a CUDA tensor takes the torch path."""
-    if _backend == "torch" or any(t.device.type != "cpu" or t.dtype not in _COMPILED_DTYPES for t in tensors):
+    """Compiled for float32/float64 tensors on one device unless "torch" is chosen ("auto": from
+    AUTO_COMPILED_MIN_STEPS steps)."""
+    if _backend == "torch" or any(t.dtype not in _COMPILED_DTYPES for t in tensors):
+        return False
+    if len({t.device for t in tensors}) != 1:
         return False
     if _backend == "auto" and steps < AUTO_COMPILED_MIN_STEPS:
         return False
@@ -72,10 +80,20 @@ def _use_compiled(steps: int, *tensors: torch.Tensor) -> bool:
     return _compiled() is not None
 
 
+def _on_the_cpu(function: Callable[..., Any], *tensors: torch.Tensor, dt: float | None = None) -> Any:
+    """`function` (a compiled kernel's autograd Function) on CPU copies of `tensors`, its results returned to
+    their device; `.cpu()` and `.to()` are differentiable, so the gradients travel back the same way."""
+    device = tensors[0].device
+    result = function(*(t.cpu() for t in tensors), *(() if dt is None else (dt,)))
+    if device.type == "cpu":
+        return result
+    return tuple(r.to(device) for r in result) if isinstance(result, tuple) else result.to(device)
+
+
 def discretize(a: torch.Tensor, b: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
     """A (..., n, n), B (..., n) -> Phi = exp(A dt) (..., n, n), Gamma = int_0^dt exp(A s) ds B (..., n)."""
     if _use_compiled(b[..., 0].numel(), a, b):
-        return _compiled().CompiledDiscretize.apply(a, b, dt)
+        return _on_the_cpu(_compiled().CompiledDiscretize.apply, a, b, dt=dt)
     return discretize_torch(a, b, dt)
 
 
@@ -93,7 +111,7 @@ def recurrence(phi: torch.Tensor, gamma: torch.Tensor, u: torch.Tensor) -> torch
     """States (B, T + 1, n) of x_{k+1} = Phi_k x_k + Gamma_k u_k from x_0 = 0; Phi (B, T, n, n),
     Gamma (B, T, n), u (B, T)."""
     if _use_compiled(u.numel(), phi, gamma, u):
-        return _compiled().CompiledRecurrence.apply(phi, gamma, u)
+        return _on_the_cpu(_compiled().CompiledRecurrence.apply, phi, gamma, u)
     return recurrence_torch(phi, gamma, u)
 
 
@@ -118,7 +136,7 @@ def simulate(a: torch.Tensor, b: torch.Tensor, u: torch.Tensor, dt: float) -> to
     and u (B, T-1) is the input over it."""
     two_states = a.shape == (*u.shape, 2, 2) and b.shape == (*u.shape, 2)     # and nothing broadcast
     if two_states and _use_compiled(u.numel(), a, b, u):
-        return _compiled().CompiledSimulate2.apply(a, b, u, dt)     # both steps in one kernel, same numbers
+        return _on_the_cpu(_compiled().CompiledSimulate2.apply, a, b, u, dt=dt)  # both steps in one kernel
     phi, gamma = discretize(a, b, dt)
     return recurrence(phi, gamma, u)
 
