@@ -7,10 +7,9 @@
 # started again: a run whose results.json exists is kept, an unfinished one is started over. FAMILIES
 # chooses the families (default "pins rect"), e.g. to run them one after the other on separate days or
 # side by side on separate machines. Extra arguments are Hydra overrides for every run.
-# The committed curve (README) was measured with stage 2's paper loss and a head of width 128, before the
-# defaults became the per-trial normalised loss and width 64: stages.head.loss=mse head.hidden=128 are set
-# here so that the script reproduces it; pass stages.head.loss=nmse head.hidden=64 to run the curve with the
-# defaults (not run yet, about 3 hours here).
+# The committed curve (README) is measured with train.py's defaults; the curve before it (stage 2's paper loss
+# and a head of width 128, docs/learning_curve/paper_loss_width128/) comes back with
+# stages.head.loss=mse head.hidden=128.
 #   [FAMILIES=pins] bash scripts/learning_curve.sh OUT [overrides...]       e.g. OUT = runs/curve
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -26,7 +25,7 @@ for family in "${families[@]}"; do
         rm -rf "$run"
         .venv/bin/python train.py data=family "data.generate.family=$family" domain=curve \
             "domain.train_count=$count" 'seeds=[0,1,2]' "hydra.run.dir=$run" trainer.progress_bar=false \
-            "evaluation.identification.cache=$fits" stages.head.loss=mse head.hidden=128 "$@"
+            "evaluation.identification.cache=$fits" "$@"
     done
 done
 .venv/bin/pipe report curve "${families[@]/#/$out/}" --out "$out"
