@@ -82,11 +82,10 @@ def _use_compiled(steps: int, *tensors: torch.Tensor) -> bool:
 
 def _on_the_cpu(function: Callable[..., Any], *tensors: torch.Tensor, dt: float | None = None) -> Any:
     """`function` (a compiled kernel's autograd Function) on CPU copies of `tensors`, its results returned to
-    their device; `.cpu()` and `.to()` are differentiable, so the gradients travel back the same way."""
+    their device; `.cpu()` and `.to()` are differentiable, so the gradients travel back the same way (on CPU
+    tensors both return the tensor itself)."""
     device = tensors[0].device
     result = function(*(t.cpu() for t in tensors), *(() if dt is None else (dt,)))
-    if device.type == "cpu":
-        return result
     return tuple(r.to(device) for r in result) if isinstance(result, tuple) else result.to(device)
 
 
