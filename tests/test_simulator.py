@@ -143,11 +143,13 @@ def test_compiled_recurrence_passes_gradcheck():
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("steps", [1, 16, 17, 300])
+@pytest.mark.parametrize("steps", [1, 31, 32, 33, 300])
 def test_fused_two_state_simulation_equals_the_two_kernels_bit_for_bit(dtype, steps):
     """CompiledSimulate2 (what simulate runs for n = 2) against CompiledDiscretize then CompiledRecurrence:
-    the same states and gradients to the last bit, whatever the steps' split into blocks of 16."""
+    the same states and gradients to the last bit, whatever the steps' split into blocks (ltv_2x2.LANES)."""
     compiled = ltv._compiled()
+    from pipe.model.ltv_2x2 import LANES
+    assert LANES == 32      # the step counts straddle a block's end
     a, b, u = mds2_system(3, steps, dtype=dtype, seed=steps)
     results = []
     for fused in (True, False):

@@ -13,8 +13,10 @@ follows the spectrum of X alone: mds2's companion matrix at conn's neutral profi
 The result depends on X only through the two numbers (m, Q), so the backward carries their derivatives
 forward through the same Horner steps and squarings (forward mode: the exact derivative of this algorithm,
 no stored iterates) and contracts them with the incoming gradients. Samples run side by side, LANES at a
-time, each lane's values updated in place so that the loops vectorise. Sums in float64 whatever the tensors'
-dtype. Why by hand: no library offers a batched 2 x 2 exponential and phi1 with their derivatives, compiled.
+time: every per-sample quantity of a block is a row of a small lane-major array (`lanes`, `state`, `steps`,
+`grads`), so that each loop over the lanes reads and writes contiguous rows without branches and vectorises;
+only the recurrences step lane by lane. Sums in float64 whatever the tensors' dtype. Why by hand: no library
+offers a batched 2 x 2 exponential and phi1 with their derivatives, compiled.
 """
 
 from __future__ import annotations
@@ -28,35 +30,46 @@ THETA = 0.125         # |m| + sqrt|Q| of X / 2^s at most
 # 6e-8); the sums run in float64 either way.
 DEGREE_2X2 = {np.dtype(np.float64): 10, np.dtype(np.float32): 6}
 MAX_SQUARINGS = 60
-LANES = 16            # samples side by side in the innermost loops
+LANES = 32            # samples side by side in the innermost loops (16: 1.5x slower, 64: no faster)
 CHUNK = 256           # samples per parallel task
-X12, X21, N11, M, Q, SCALE, SQUARINGS = range(7)     # rows of a block's `lanes`
+X12, X21, N11, M, Q, SCALE, SQUARINGS, RADIUS, B1, B2 = range(10)     # rows of a block's `lanes`
+P11, P12, P21, P22, G1, G2 = range(6)     # rows of a block's `steps` (Phi, Gamma) and `grads` (their gradients)
 
 _jit = numba.njit(cache=True, fastmath=False, parallel=True)
 _jit_inline = numba.njit(cache=True, fastmath=False, inline="always")
 
 
 @_jit_inline
-def _load(a: np.ndarray, dt: float, first: int, lanes: np.ndarray) -> int:
+def _load(a: np.ndarray, b: np.ndarray, dt: float, first: int, lanes: np.ndarray) -> int:
     """For items first.. (one per lane; a short last block repeats its last item) the rows of `lanes`: x12,
     x21, n11 (N = [[n11, x12], [x21, -n11]]), m = mu / 2^s, Q = q / 4^s, 2^-s and s, the squarings that bring
-    |mu| + sqrt|q| to THETA. Returns the largest s."""
-    most = 0
+    |mu| + sqrt|q| to THETA, and b. The block's largest radius gives the number of halving rounds, each of
+    which halves the radii still above THETA. Returns the largest s."""
     for lane in range(LANES):
         item = min(first + lane, a.shape[0] - 1)
         x11, x12, x21, x22 = a[item, 0, 0] * dt, a[item, 0, 1] * dt, a[item, 1, 0] * dt, a[item, 1, 1] * dt
         mu, n11 = 0.5 * (x11 + x22), 0.5 * (x11 - x22)
         q = n11 * n11 + x12 * x21
-        radius = abs(mu) + np.sqrt(abs(q))
-        s = 0
-        while radius > THETA and s < MAX_SQUARINGS:
-            radius *= 0.5
-            s += 1
-        scale = 0.5 ** s
         lanes[X12, lane], lanes[X21, lane], lanes[N11, lane] = x12, x21, n11
-        lanes[M, lane], lanes[Q, lane] = mu * scale, q * scale * scale
-        lanes[SCALE, lane], lanes[SQUARINGS, lane] = scale, s
-        most = max(most, s)
+        lanes[M, lane], lanes[Q, lane], lanes[RADIUS, lane] = mu, q, abs(mu) + np.sqrt(abs(q))
+        lanes[SCALE, lane], lanes[SQUARINGS, lane] = 1.0, 0.0
+        lanes[B1, lane], lanes[B2, lane] = b[item, 0], b[item, 1]
+    largest = 0.0
+    for lane in range(LANES):
+        largest = max(largest, lanes[RADIUS, lane])
+    most = 0
+    while largest > THETA and most < MAX_SQUARINGS:
+        largest *= 0.5
+        most += 1
+    for _ in range(most):
+        for lane in range(LANES):
+            active = lanes[RADIUS, lane] > THETA
+            lanes[RADIUS, lane] = 0.5 * lanes[RADIUS, lane] if active else lanes[RADIUS, lane]
+            lanes[SCALE, lane] = 0.5 * lanes[SCALE, lane] if active else lanes[SCALE, lane]
+            lanes[SQUARINGS, lane] = lanes[SQUARINGS, lane] + 1.0 if active else lanes[SQUARINGS, lane]
+    for lane in range(LANES):
+        scale = lanes[SCALE, lane]
+        lanes[M, lane], lanes[Q, lane] = lanes[M, lane] * scale, lanes[Q, lane] * scale * scale
     return most
 
 
@@ -134,36 +147,32 @@ def _exponentials_and_derivatives(lanes: np.ndarray, most: int, degree: int, sta
 
 
 @_jit_inline
-def _write_steps(lanes: np.ndarray, state: np.ndarray, b: np.ndarray, first: int, count: int, dt: float,
-                 phi: np.ndarray, gamma: np.ndarray, out: int) -> None:
-    """phi[out + lane] and gamma[out + lane] of the block's first `count` lanes (items first.. of b):
-    Phi = p I + r 2^-s N, Gamma = dt (g I + h 2^-s N) b."""
-    for lane in range(count):
-        item = first + lane
-        x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
-        alpha, beta = state[0, lane], state[1, lane] * scale          # beta of N = 2^s N'
-        phi[out + lane, 0, 0], phi[out + lane, 0, 1] = alpha + beta * n11, beta * x12
-        phi[out + lane, 1, 0], phi[out + lane, 1, 1] = beta * x21, alpha - beta * n11
+def _steps(lanes: np.ndarray, state: np.ndarray, dt: float, steps: np.ndarray) -> None:
+    """The rows of `steps` from (p, r, g, h): Phi = p I + r 2^-s N, Gamma = dt (g I + h 2^-s N) b."""
+    for lane in range(LANES):
+        n11, scale = lanes[N11, lane], lanes[SCALE, lane]
+        alpha, beta = state[0, lane], state[1, lane] * scale
+        steps[P11, lane], steps[P12, lane] = alpha + beta * n11, beta * lanes[X12, lane]
+        steps[P21, lane], steps[P22, lane] = beta * lanes[X21, lane], alpha - beta * n11
         alpha, beta = state[2, lane] * dt, state[3, lane] * scale * dt
-        b1, b2 = b[item, 0], b[item, 1]
-        gamma[out + lane, 0] = (alpha + beta * n11) * b1 + beta * x12 * b2
-        gamma[out + lane, 1] = beta * x21 * b1 + (alpha - beta * n11) * b2
+        b1, b2 = lanes[B1, lane], lanes[B2, lane]
+        steps[G1, lane] = (alpha + beta * n11) * b1 + beta * lanes[X12, lane] * b2
+        steps[G2, lane] = beta * lanes[X21, lane] * b1 + (alpha - beta * n11) * b2
 
 
 @_jit_inline
-def _contract(lanes: np.ndarray, state: np.ndarray, b: np.ndarray, first: int, count: int, dt: float,
-              grad_phi: np.ndarray, grad_gamma: np.ndarray, out: int, grad_a: np.ndarray, grad_b: np.ndarray) -> None:
-    """Gradients of a and b (items first..) from those of phi and gamma (at out..): the gradients of
-    (p, r, g, h), of N and of b; the derivatives of (p, r, g, h) by m and Q give those of mu = 2^s m and
-    q = 4^s Q, and with mu = (x11 + x22) / 2, n11 = (x11 - x22) / 2, q = n11^2 + x12 x21 those of X = a dt."""
-    for lane in range(count):
-        item, at = first + lane, out + lane
+def _contract(lanes: np.ndarray, state: np.ndarray, dt: float, grads: np.ndarray, out: np.ndarray) -> None:
+    """Rows of `out` (the gradients of a11, a12, a21, a22, b1, b2) from `grads` (those of Phi and Gamma): the
+    gradients of (p, r, g, h), of N and of b; the derivatives of (p, r, g, h) by m and Q give those of
+    mu = 2^s m and q = 4^s Q, and with mu = (x11 + x22) / 2, n11 = (x11 - x22) / 2, q = n11^2 + x12 x21 those
+    of X = a dt."""
+    for lane in range(LANES):
         x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
-        f11, f12, f21, f22 = grad_phi[at, 0, 0], grad_phi[at, 0, 1], grad_phi[at, 1, 0], grad_phi[at, 1, 1]
-        g1, g2, b1, b2 = grad_gamma[at, 0], grad_gamma[at, 1], b[item, 0], b[item, 1]
+        f11, f12, f21, f22 = grads[P11, lane], grads[P12, lane], grads[P21, lane], grads[P22, lane]
+        g1, g2, b1, b2 = grads[G1, lane], grads[G2, lane], lanes[B1, lane], lanes[B2, lane]
         beta_p, alpha_g, beta_g = state[1, lane] * scale, state[2, lane] * dt, state[3, lane] * scale * dt
-        grad_b[item, 0] = (alpha_g + beta_g * n11) * g1 + beta_g * x21 * g2
-        grad_b[item, 1] = beta_g * x12 * g1 + (alpha_g - beta_g * n11) * g2
+        out[4, lane] = (alpha_g + beta_g * n11) * g1 + beta_g * x21 * g2
+        out[5, lane] = beta_g * x12 * g1 + (alpha_g - beta_g * n11) * g2
         bar_p = f11 + f22
         bar_r = (n11 * (f11 - f22) + x12 * f12 + x21 * f21) * scale
         bar_g = dt * (g1 * b1 + g2 * b2)
@@ -173,10 +182,20 @@ def _contract(lanes: np.ndarray, state: np.ndarray, b: np.ndarray, first: int, c
         bar_q = scale * scale * (bar_p * state[8, lane] + bar_r * state[9, lane] + bar_g * state[10, lane]
                                  + bar_h * state[11, lane])
         bar_n11 = beta_p * (f11 - f22) + beta_g * (g1 * b1 - g2 * b2) + 2.0 * n11 * bar_q
-        grad_a[item, 0, 0] = 0.5 * (bar_mu + bar_n11) * dt
-        grad_a[item, 1, 1] = 0.5 * (bar_mu - bar_n11) * dt
-        grad_a[item, 0, 1] = (beta_p * f12 + beta_g * g1 * b2 + x21 * bar_q) * dt
-        grad_a[item, 1, 0] = (beta_p * f21 + beta_g * g2 * b1 + x12 * bar_q) * dt
+        out[0, lane] = 0.5 * (bar_mu + bar_n11) * dt
+        out[1, lane] = (beta_p * f12 + beta_g * g1 * b2 + x21 * bar_q) * dt
+        out[2, lane] = (beta_p * f21 + beta_g * g2 * b1 + x12 * bar_q) * dt
+        out[3, lane] = 0.5 * (bar_mu - bar_n11) * dt
+
+
+@_jit_inline
+def _store_gradients(out: np.ndarray, first: int, count: int, grad_a: np.ndarray, grad_b: np.ndarray) -> None:
+    """The block's first `count` lanes of `out` into grad_a and grad_b at items first.."""
+    for lane in range(count):
+        item = first + lane
+        grad_a[item, 0, 0], grad_a[item, 0, 1] = out[0, lane], out[1, lane]
+        grad_a[item, 1, 0], grad_a[item, 1, 1] = out[2, lane], out[3, lane]
+        grad_b[item, 0], grad_b[item, 1] = out[4, lane], out[5, lane]
 
 
 @_jit
@@ -185,10 +204,16 @@ def discretize2_forward(a: np.ndarray, b: np.ndarray, dt: float, degree: int, ph
     """a (N, 2, 2), b (N, 2) -> phi = exp(a dt) (N, 2, 2), gamma = phi1(a dt) dt b (N, 2)."""
     count = a.shape[0]
     for chunk in numba.prange((count + CHUNK - 1) // CHUNK):
-        lanes, state = np.empty((7, LANES)), np.empty((4, LANES))
+        lanes, state = np.empty((10, LANES)), np.empty((4, LANES))
+        steps = np.empty((6, LANES), dtype=a.dtype)
         for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
-            _exponentials(lanes, _load(a, dt, first, lanes), degree, state)
-            _write_steps(lanes, state, b, first, min(LANES, count - first), dt, phi, gamma, first)
+            _exponentials(lanes, _load(a, b, dt, first, lanes), degree, state)
+            _steps(lanes, state, dt, steps)
+            for lane in range(min(LANES, count - first)):
+                item = first + lane
+                phi[item, 0, 0], phi[item, 0, 1] = steps[P11, lane], steps[P12, lane]
+                phi[item, 1, 0], phi[item, 1, 1] = steps[P21, lane], steps[P22, lane]
+                gamma[item, 0], gamma[item, 1] = steps[G1, lane], steps[G2, lane]
 
 
 @_jit
@@ -197,36 +222,46 @@ def discretize2_backward(a: np.ndarray, b: np.ndarray, dt: float, degree: int, g
     """Gradients of a (N, 2, 2) and b (N, 2) from those of phi and gamma (`_contract`)."""
     count = a.shape[0]
     for chunk in numba.prange((count + CHUNK - 1) // CHUNK):
-        lanes, state = np.empty((7, LANES)), np.empty((12, LANES))
+        lanes, state, out = np.empty((10, LANES)), np.empty((12, LANES)), np.empty((6, LANES))
+        grads = np.zeros((6, LANES), dtype=a.dtype)
         for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
-            _exponentials_and_derivatives(lanes, _load(a, dt, first, lanes), degree, state)
-            _contract(lanes, state, b, first, min(LANES, count - first), dt, grad_phi, grad_gamma, first, grad_a,
-                      grad_b)
+            _exponentials_and_derivatives(lanes, _load(a, b, dt, first, lanes), degree, state)
+            for lane in range(min(LANES, count - first)):
+                item = first + lane
+                grads[P11, lane], grads[P12, lane] = grad_phi[item, 0, 0], grad_phi[item, 0, 1]
+                grads[P21, lane], grads[P22, lane] = grad_phi[item, 1, 0], grad_phi[item, 1, 1]
+                grads[G1, lane], grads[G2, lane] = grad_gamma[item, 0], grad_gamma[item, 1]
+            _contract(lanes, state, dt, grads, out)
+            _store_gradients(out, first, min(LANES, count - first), grad_a, grad_b)
 
 
 @_jit
 def simulate2_forward(a: np.ndarray, b: np.ndarray, u: np.ndarray, dt: float, degree: int, x: np.ndarray) -> None:
     """discretize2_forward and `pipe.model.ltv_numba.recurrence_forward` in one pass per trajectory: a
     (B, T, 2, 2), b (B, T, 2), u (B, T) -> states x (B, T + 1, 2) from x_0 = 0. Each block of LANES steps is
-    discretised into small arrays of the inputs' dtype and stepped through at once, so the step matrices
+    discretised into a small array of the inputs' dtype and stepped through at once, so the step matrices
     never reach memory as tensors; the same operations in the same order as the two kernels, so the same
     numbers to the last bit."""
-    batch, steps = u.shape
+    batch, length = u.shape
     for row in numba.prange(batch):
-        lanes, state = np.empty((7, LANES)), np.empty((4, LANES))
-        phi, gamma = np.empty((LANES, 2, 2), dtype=a.dtype), np.empty((LANES, 2), dtype=a.dtype)
+        lanes, state = np.empty((10, LANES)), np.empty((4, LANES))
+        steps = np.empty((6, LANES), dtype=a.dtype)
         x[row, 0, 0], x[row, 0, 1] = 0.0, 0.0
-        for first in range(0, steps, LANES):
-            count = min(LANES, steps - first)
-            _exponentials(lanes, _load(a[row], dt, first, lanes), degree, state)
-            _write_steps(lanes, state, b[row], first, count, dt, phi, gamma, 0)
-            for lane in range(count):
+        x1, x2 = x[row, 0, 0], x[row, 0, 1]       # the states of the inputs' dtype, carried in registers
+        for first in range(0, length, LANES):
+            _exponentials(lanes, _load(a[row], b[row], dt, first, lanes), degree, state)
+            _steps(lanes, state, dt, steps)
+            for lane in range(min(LANES, length - first)):
                 k = first + lane
-                for i in range(2):
-                    acc = gamma[lane, i] * u[row, k]
-                    for j in range(2):
-                        acc += phi[lane, i, j] * x[row, k, j]
-                    x[row, k + 1, i] = acc
+                drive = u[row, k]
+                y1 = steps[G1, lane] * drive
+                y1 += steps[P11, lane] * x1
+                y1 += steps[P12, lane] * x2
+                y2 = steps[G2, lane] * drive
+                y2 += steps[P21, lane] * x1
+                y2 += steps[P22, lane] * x2
+                x1, x2 = y1, y2
+                x[row, k + 1, 0], x[row, k + 1, 1] = x1, x2
 
 
 @_jit
@@ -234,32 +269,33 @@ def simulate2_backward(a: np.ndarray, b: np.ndarray, u: np.ndarray, dt: float, d
                        grad_x: np.ndarray, grad_a: np.ndarray, grad_b: np.ndarray, grad_u: np.ndarray) -> None:
     """The adjoint of simulate2_forward, block by block from the end: each block's steps are discretised
     again with their derivatives, the adjoint recurrence lambda_k = g_k + Phi_k^T lambda_{k+1} runs through
-    them (as `pipe.model.ltv_numba.recurrence_backward`) and its gradients of Phi and Gamma are contracted at
-    once into those of a and b (`_contract`)."""
-    batch, steps = u.shape
+    them (as `pipe.model.ltv_numba.recurrence_backward`, lambda in registers) and its gradients of Phi and
+    Gamma are contracted at once into those of a and b (`_contract`)."""
+    batch, length = u.shape
     for row in numba.prange(batch):
-        lanes, state = np.empty((7, LANES)), np.empty((12, LANES))
-        phi, gamma = np.empty((LANES, 2, 2), dtype=a.dtype), np.empty((LANES, 2), dtype=a.dtype)
-        grad_phi, grad_gamma = np.empty((LANES, 2, 2), dtype=a.dtype), np.empty((LANES, 2), dtype=a.dtype)
-        lam = grad_x[row, steps].copy()
-        nxt = np.empty(2)
-        for first in range((steps - 1) // LANES * LANES, -1, -LANES):
-            count = min(LANES, steps - first)
-            _exponentials_and_derivatives(lanes, _load(a[row], dt, first, lanes), degree, state)
-            _write_steps(lanes, state, b[row], first, count, dt, phi, gamma, 0)
+        lanes, state, out = np.empty((10, LANES)), np.empty((12, LANES)), np.empty((6, LANES))
+        steps, grads = np.empty((6, LANES), dtype=a.dtype), np.zeros((6, LANES), dtype=a.dtype)
+        l1, l2 = grad_x[row, length, 0], grad_x[row, length, 1]
+        for first in range((length - 1) // LANES * LANES, -1, -LANES):
+            count = min(LANES, length - first)
+            _exponentials_and_derivatives(lanes, _load(a[row], b[row], dt, first, lanes), degree, state)
+            _steps(lanes, state, dt, steps)
             for lane in range(count - 1, -1, -1):
                 k = first + lane
+                drive, y1, y2 = u[row, k], x[row, k, 0], x[row, k, 1]
+                grads[G1, lane], grads[G2, lane] = l1 * drive, l2 * drive
+                grads[P11, lane], grads[P12, lane] = l1 * y1, l1 * y2
+                grads[P21, lane], grads[P22, lane] = l2 * y1, l2 * y2
                 dot = 0.0
-                for i in range(2):
-                    grad_gamma[lane, i] = lam[i] * u[row, k]
-                    dot += gamma[lane, i] * lam[i]
-                    for j in range(2):
-                        grad_phi[lane, i, j] = lam[i] * x[row, k, j]
+                dot += steps[G1, lane] * l1
+                dot += steps[G2, lane] * l2
                 grad_u[row, k] = dot
-                for j in range(2):
-                    acc = grad_x[row, k, j]
-                    for i in range(2):
-                        acc += phi[lane, i, j] * lam[i]
-                    nxt[j] = acc
-                lam[:] = nxt
-            _contract(lanes, state, b[row], first, count, dt, grad_phi, grad_gamma, 0, grad_a[row], grad_b[row])
+                m1 = grad_x[row, k, 0]
+                m1 += steps[P11, lane] * l1
+                m1 += steps[P21, lane] * l2
+                m2 = grad_x[row, k, 1]
+                m2 += steps[P12, lane] * l1
+                m2 += steps[P22, lane] * l2
+                l1, l2 = m1, m2
+            _contract(lanes, state, dt, grads, out)
+            _store_gradients(out, first, count, grad_a[row], grad_b[row])
