@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 from test_baselines import DT, part
 
+import pipe.model
 from pipe.data.preprocess import Profile
-from pipe.evaluation import identification
+from pipe.evaluation import fit_cache, identification
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.fit_cache import fit_key
 from pipe.evaluation.identification import identify
@@ -93,6 +96,14 @@ def test_whatever_decides_a_fit_changes_its_key(change):
     else:
         dynamics = MDS2(time_constant=0.03)
     assert fit_key("t", trials, target, settings, seed, DT, head, dynamics) != before
+
+
+@pytest.mark.parametrize("module", ["ltv", "ltv_numba", "ltv_2x2", "losses", "pipe_model"])
+def test_the_key_covers_the_source_of_every_simulator_kernel(module):
+    """A fit depends on the compiled kernels' arithmetic too: the two-state kernels (ltv_2x2) were once left
+    out of the key, so a changed kernel would have reused fits made by the old one."""
+    source = (Path(pipe.model.__file__).parent / f"{module}.py").read_bytes()
+    assert source in fit_cache._code(GaussianHead(32, 4), MDS2())
 
 
 def test_the_neutral_start_alone_is_shared_across_seeds_and_random_starts_are_not(tmp_path):

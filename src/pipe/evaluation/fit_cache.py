@@ -16,6 +16,7 @@ import importlib.util
 import json
 import logging
 import os
+import pkgutil
 import tempfile
 from functools import cache
 from pathlib import Path
@@ -25,12 +26,12 @@ import numpy as np
 import torch
 from torch import nn
 
+import pipe.model
 from pipe.data.preprocess import Profile
 
 log = logging.getLogger(__name__)
 
-_CODE = ("pipe.evaluation.identification", "pipe.model.ltv", "pipe.model.ltv_numba", "pipe.model.pipe_model",
-         "pipe.model.losses")
+_CODE = ("pipe.evaluation.identification",)     # and every module of pipe.model (the simulator's kernels among them)
 _PLAIN = (int, float, str, bool)
 
 
@@ -50,10 +51,12 @@ def _source(names: frozenset[str]) -> bytes:
 
 
 def _code(*modules: nn.Module) -> bytes:
-    """The source of the project's code that computes a fit: the identification and simulator modules, and
-    those that define these modules' classes and their bases."""
-    return _source(frozenset(_CODE) | {c.__module__ for m in modules for c in type(m).__mro__
-                                       if c.__module__.startswith("pipe.")})
+    """The source of the project's code that computes a fit: the identification, every module of pipe.model
+    (the simulator and its compiled kernels, the losses, PIPEModel), and those that define these modules'
+    classes and their bases."""
+    model_modules = {f"pipe.model.{m.name}" for m in pkgutil.iter_modules(pipe.model.__path__)}
+    return _source(frozenset(_CODE) | model_modules | {c.__module__ for m in modules for c in type(m).__mro__
+                                                       if c.__module__.startswith("pipe.")})
 
 
 def fit_key(part: str, trials: list[Profile], target: str, settings: dict[str, Any], seed: int | None,
