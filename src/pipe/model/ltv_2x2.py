@@ -32,18 +32,19 @@ DEGREE_2X2 = {np.dtype(np.float64): 10, np.dtype(np.float32): 6}
 MAX_SQUARINGS = 60
 LANES = 32            # samples side by side in the innermost loops (16: 1.5x slower, 64: no faster)
 CHUNK = 256           # samples per parallel task
-X12, X21, N11, M, Q, SCALE, SQUARINGS, RADIUS, B1, B2 = range(10)     # rows of a block's `lanes`
-P11, P12, P21, P22, G1, G2 = range(6)     # rows of a block's `steps` (Phi, Gamma) and `grads` (their gradients)
+X12, X21, N11, M, Q, SCALE, SQUARINGS, RADIUS = range(8)     # rows of a block's `lanes` (float64)
+# rows of a block's `steps` (Phi, Gamma and b, in the inputs' dtype) and `grads` (the gradients of Phi and Gamma)
+P11, P12, P21, P22, G1, G2, B1, B2 = range(8)
 
 _jit = numba.njit(cache=True, fastmath=False, parallel=True)
 _jit_inline = numba.njit(cache=True, fastmath=False, inline="always")
 
 
 @_jit_inline
-def _load(a: np.ndarray, b: np.ndarray, dt: float, first: int, lanes: np.ndarray) -> int:
+def _load(a: np.ndarray, b: np.ndarray, dt: float, first: int, lanes: np.ndarray, steps: np.ndarray) -> int:
     """For items first.. (one per lane; a short last block repeats its last item) the rows of `lanes`: x12,
     x21, n11 (N = [[n11, x12], [x21, -n11]]), m = mu / 2^s, Q = q / 4^s, 2^-s and s, the squarings that bring
-    |mu| + sqrt|q| to THETA, and b. The block's largest radius gives the number of halving rounds, each of
+    |mu| + sqrt|q| to THETA; and b into `steps`. The block's largest radius gives the number of halving rounds, each of
     which halves the radii still above THETA. Returns the largest s."""
     for lane in range(LANES):
         item = min(first + lane, a.shape[0] - 1)
@@ -53,7 +54,7 @@ def _load(a: np.ndarray, b: np.ndarray, dt: float, first: int, lanes: np.ndarray
         lanes[X12, lane], lanes[X21, lane], lanes[N11, lane] = x12, x21, n11
         lanes[M, lane], lanes[Q, lane], lanes[RADIUS, lane] = mu, q, abs(mu) + np.sqrt(abs(q))
         lanes[SCALE, lane], lanes[SQUARINGS, lane] = 1.0, 0.0
-        lanes[B1, lane], lanes[B2, lane] = b[item, 0], b[item, 1]
+        steps[B1, lane], steps[B2, lane] = b[item, 0], b[item, 1]
     largest = 0.0
     for lane in range(LANES):
         largest = max(largest, lanes[RADIUS, lane])
@@ -155,13 +156,14 @@ def _steps(lanes: np.ndarray, state: np.ndarray, dt: float, steps: np.ndarray) -
         steps[P11, lane], steps[P12, lane] = alpha + beta * n11, beta * lanes[X12, lane]
         steps[P21, lane], steps[P22, lane] = beta * lanes[X21, lane], alpha - beta * n11
         alpha, beta = state[2, lane] * dt, state[3, lane] * scale * dt
-        b1, b2 = lanes[B1, lane], lanes[B2, lane]
+        b1, b2 = steps[B1, lane], steps[B2, lane]
         steps[G1, lane] = (alpha + beta * n11) * b1 + beta * lanes[X12, lane] * b2
         steps[G2, lane] = beta * lanes[X21, lane] * b1 + (alpha - beta * n11) * b2
 
 
 @_jit_inline
-def _contract(lanes: np.ndarray, state: np.ndarray, dt: float, grads: np.ndarray, out: np.ndarray) -> None:
+def _contract(lanes: np.ndarray, state: np.ndarray, dt: float, steps: np.ndarray, grads: np.ndarray,
+              out: np.ndarray) -> None:
     """Rows of `out` (the gradients of a11, a12, a21, a22, b1, b2) from `grads` (those of Phi and Gamma): the
     gradients of (p, r, g, h), of N and of b; the derivatives of (p, r, g, h) by m and Q give those of
     mu = 2^s m and q = 4^s Q, and with mu = (x11 + x22) / 2, n11 = (x11 - x22) / 2, q = n11^2 + x12 x21 those
@@ -169,7 +171,7 @@ def _contract(lanes: np.ndarray, state: np.ndarray, dt: float, grads: np.ndarray
     for lane in range(LANES):
         x12, x21, n11, scale = lanes[X12, lane], lanes[X21, lane], lanes[N11, lane], lanes[SCALE, lane]
         f11, f12, f21, f22 = grads[P11, lane], grads[P12, lane], grads[P21, lane], grads[P22, lane]
-        g1, g2, b1, b2 = grads[G1, lane], grads[G2, lane], lanes[B1, lane], lanes[B2, lane]
+        g1, g2, b1, b2 = grads[G1, lane], grads[G2, lane], steps[B1, lane], steps[B2, lane]
         beta_p, alpha_g, beta_g = state[1, lane] * scale, state[2, lane] * dt, state[3, lane] * scale * dt
         out[4, lane] = (alpha_g + beta_g * n11) * g1 + beta_g * x21 * g2
         out[5, lane] = beta_g * x12 * g1 + (alpha_g - beta_g * n11) * g2
@@ -204,10 +206,10 @@ def discretize2_forward(a: np.ndarray, b: np.ndarray, dt: float, degree: int, ph
     """a (N, 2, 2), b (N, 2) -> phi = exp(a dt) (N, 2, 2), gamma = phi1(a dt) dt b (N, 2)."""
     count = a.shape[0]
     for chunk in numba.prange((count + CHUNK - 1) // CHUNK):
-        lanes, state = np.empty((10, LANES)), np.empty((4, LANES))
-        steps = np.empty((6, LANES), dtype=a.dtype)
+        lanes, state = np.empty((8, LANES)), np.empty((4, LANES))
+        steps = np.empty((8, LANES), dtype=a.dtype)
         for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
-            _exponentials(lanes, _load(a, b, dt, first, lanes), degree, state)
+            _exponentials(lanes, _load(a, b, dt, first, lanes, steps), degree, state)
             _steps(lanes, state, dt, steps)
             for lane in range(min(LANES, count - first)):
                 item = first + lane
@@ -222,16 +224,16 @@ def discretize2_backward(a: np.ndarray, b: np.ndarray, dt: float, degree: int, g
     """Gradients of a (N, 2, 2) and b (N, 2) from those of phi and gamma (`_contract`)."""
     count = a.shape[0]
     for chunk in numba.prange((count + CHUNK - 1) // CHUNK):
-        lanes, state, out = np.empty((10, LANES)), np.empty((12, LANES)), np.empty((6, LANES))
-        grads = np.zeros((6, LANES), dtype=a.dtype)
+        lanes, state, out = np.empty((8, LANES)), np.empty((12, LANES)), np.empty((6, LANES))
+        steps, grads = np.empty((8, LANES), dtype=a.dtype), np.zeros((6, LANES), dtype=a.dtype)
         for first in range(chunk * CHUNK, min(count, (chunk + 1) * CHUNK), LANES):
-            _exponentials_and_derivatives(lanes, _load(a, b, dt, first, lanes), degree, state)
+            _exponentials_and_derivatives(lanes, _load(a, b, dt, first, lanes, steps), degree, state)
             for lane in range(min(LANES, count - first)):
                 item = first + lane
                 grads[P11, lane], grads[P12, lane] = grad_phi[item, 0, 0], grad_phi[item, 0, 1]
                 grads[P21, lane], grads[P22, lane] = grad_phi[item, 1, 0], grad_phi[item, 1, 1]
                 grads[G1, lane], grads[G2, lane] = grad_gamma[item, 0], grad_gamma[item, 1]
-            _contract(lanes, state, dt, grads, out)
+            _contract(lanes, state, dt, steps, grads, out)
             _store_gradients(out, first, min(LANES, count - first), grad_a, grad_b)
 
 
@@ -244,12 +246,12 @@ def simulate2_forward(a: np.ndarray, b: np.ndarray, u: np.ndarray, dt: float, de
     numbers to the last bit."""
     batch, length = u.shape
     for row in numba.prange(batch):
-        lanes, state = np.empty((10, LANES)), np.empty((4, LANES))
-        steps = np.empty((6, LANES), dtype=a.dtype)
+        lanes, state = np.empty((8, LANES)), np.empty((4, LANES))
+        steps = np.empty((8, LANES), dtype=a.dtype)
         x[row, 0, 0], x[row, 0, 1] = 0.0, 0.0
         x1, x2 = x[row, 0, 0], x[row, 0, 1]       # the states of the inputs' dtype, carried in registers
         for first in range(0, length, LANES):
-            _exponentials(lanes, _load(a[row], b[row], dt, first, lanes), degree, state)
+            _exponentials(lanes, _load(a[row], b[row], dt, first, lanes, steps), degree, state)
             _steps(lanes, state, dt, steps)
             for lane in range(min(LANES, length - first)):
                 k = first + lane
@@ -273,12 +275,12 @@ def simulate2_backward(a: np.ndarray, b: np.ndarray, u: np.ndarray, dt: float, d
     Gamma are contracted at once into those of a and b (`_contract`)."""
     batch, length = u.shape
     for row in numba.prange(batch):
-        lanes, state, out = np.empty((10, LANES)), np.empty((12, LANES)), np.empty((6, LANES))
-        steps, grads = np.empty((6, LANES), dtype=a.dtype), np.zeros((6, LANES), dtype=a.dtype)
+        lanes, state, out = np.empty((8, LANES)), np.empty((12, LANES)), np.empty((6, LANES))
+        steps, grads = np.empty((8, LANES), dtype=a.dtype), np.zeros((6, LANES), dtype=a.dtype)
         l1, l2 = grad_x[row, length, 0], grad_x[row, length, 1]
         for first in range((length - 1) // LANES * LANES, -1, -LANES):
             count = min(LANES, length - first)
-            _exponentials_and_derivatives(lanes, _load(a[row], b[row], dt, first, lanes), degree, state)
+            _exponentials_and_derivatives(lanes, _load(a[row], b[row], dt, first, lanes, steps), degree, state)
             _steps(lanes, state, dt, steps)
             for lane in range(count - 1, -1, -1):
                 k = first + lane
@@ -297,5 +299,5 @@ def simulate2_backward(a: np.ndarray, b: np.ndarray, u: np.ndarray, dt: float, d
                 m2 += steps[P12, lane] * l1
                 m2 += steps[P22, lane] * l2
                 l1, l2 = m1, m2
-            _contract(lanes, state, dt, grads, out)
+            _contract(lanes, state, dt, steps, grads, out)
             _store_gradients(out, first, count, grad_a[row], grad_b[row])
