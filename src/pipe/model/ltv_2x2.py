@@ -44,8 +44,8 @@ _jit_inline = numba.njit(cache=True, fastmath=False, inline="always")
 def _load(a: np.ndarray, b: np.ndarray, dt: float, first: int, lanes: np.ndarray, steps: np.ndarray) -> int:
     """For items first.. (one per lane; a short last block repeats its last item) the rows of `lanes`: x12,
     x21, n11 (N = [[n11, x12], [x21, -n11]]), m = mu / 2^s, Q = q / 4^s, 2^-s and s, the squarings that bring
-    |mu| + sqrt|q| to THETA; and b into `steps`. The block's largest radius gives the number of halving rounds, each of
-    which halves the radii still above THETA. Returns the largest s."""
+    |mu| + sqrt|q| to THETA; and b into `steps`. The block's largest radius gives the number of halving
+    rounds, each of which halves the radii still above THETA (no per-sample loop). Returns the largest s."""
     for lane in range(LANES):
         item = min(first + lane, a.shape[0] - 1)
         x11, x12, x21, x22 = a[item, 0, 0] * dt, a[item, 0, 1] * dt, a[item, 1, 0] * dt, a[item, 1, 1] * dt
