@@ -70,8 +70,8 @@ def fit_of(measured: np.ndarray, predicted: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ridge", [0.0, 0.1])
-def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge):
+@pytest.mark.parametrize("ridge, engine", [(0.0, "torch"), (0.1, "torch"), (0.0, "compiled"), (0.1, "compiled")])
+def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge, engine):
     """On noise-free data simulated by the model itself (parameters away from the neutral profile): FIT(F)
     above 99 %, and the parameters that the force determines recovered, whatever PIPE's head has learnt:
     the static gain b0 / a2 at every depth within 5 %, with and without the ridge (the shallowest depth, where
@@ -80,7 +80,7 @@ def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge):
     where the stop excites the dynamics (along the slow ramp the force barely depends on them; mds2's
     parameters are known up to a common factor)."""
     context, test = ctx
-    context.settings["identification"]["ridge"] = ridge
+    context.settings["identification"] |= {"ridge": ridge, "engine": engine}
     with torch.no_grad():                       # the oracle does not start from PIPE: spoil PIPE's head
         for p in context.model.head.parameters():
             p.add_(torch.randn_like(p))
@@ -117,9 +117,10 @@ def test_oracle_clean_is_left_out_without_a_noise_free_force(ctx):
     assert set(evaluate_methods(context, [test], ["pipe", "oracle", "oracle_clean"])) == {"pipe", "oracle"}
 
 
-def test_identification_stops_at_max_evaluations_and_reports_it(ctx):
+@pytest.mark.parametrize("engine", ["torch", "compiled"])
+def test_identification_stops_at_max_evaluations_and_reports_it(ctx, engine):
     context, test = ctx
-    context.settings["identification"] |= {"max_evaluations": 7, "restarts": 1}
+    context.settings["identification"] |= {"max_evaluations": 7, "restarts": 1, "engine": engine}
     fitted = identify(context, [test])[0]
     assert fitted.evaluations == 7 and not fitted.converged
     assert fitted.loss == pytest.approx(
@@ -132,6 +133,40 @@ def test_unknown_identification_option_is_refused(ctx):
     context.settings["identification"]["steps"] = 10
     with pytest.raises(PipeError, match=r"unknown evaluation.identification option\(s\) \['steps'\]"):
         identify(context, [test])
+
+
+def test_an_unknown_identification_engine_is_refused(ctx):
+    context, test = ctx
+    context.settings["identification"]["engine"] = "jax"
+    with pytest.raises(PipeError, match=r"engine 'jax'; known: \['torch', 'compiled'\]"):
+        identify(context, [test])
+
+
+def test_the_compiled_engine_fits_on_torch_where_the_head_offers_no_compiled_form(ctx, monkeypatch):
+    """A head without `compiled` (a plugin that does not write one) is fitted by the torch engine, the same
+    fit to the bit as engine=torch."""
+    context, test = ctx
+    context.settings["identification"] |= {"max_evaluations": 30, "restarts": 1}
+    on_torch = identify(context, [test])[0]
+    context.cache.clear()
+    context.settings["identification"]["engine"] = "compiled"
+    monkeypatch.setattr(identification.CompiledObjective, "of", lambda *args: None)
+    fallback = identify(context, [test])[0]
+    assert (fallback.loss, fallback.evaluations) == (on_torch.loss, on_torch.evaluations)
+
+
+def test_the_compiled_engine_lowers_the_objective_as_the_torch_engine_does(ctx):
+    """Both engines fit the same objective: on a part whose force the model can produce, each ends near
+    zero error from the neutral start."""
+    context, test = ctx
+    context.settings["identification"] |= {"restarts": 1, "ridge": 0.0}
+    fits = {}
+    for engine in ("torch", "compiled"):
+        context.cache.clear()
+        context.settings["identification"]["engine"] = engine
+        fits[engine] = identify(context, [test])[0]
+    power = float(np.mean([np.mean(p.force ** 2) for p in test.profiles]))
+    assert all(fit.converged and fit.loss < 1e-4 * power for fit in fits.values())
 
 
 def test_a_head_without_free_profiles_is_refused_clearly(ctx):
@@ -147,11 +182,12 @@ def test_a_head_without_free_profiles_is_refused_clearly(ctx):
         identify(context, [test])
 
 
-def test_starts_fitted_in_worker_processes_equal_those_fitted_here(ctx):
+@pytest.mark.parametrize("engine", ["torch", "compiled"])
+def test_starts_fitted_in_worker_processes_equal_those_fitted_here(ctx, engine):
     """`workers`: the starts of several parts fitted in two started processes give every part the fit, the
     loss and the evaluation count it gets here (each start runs on one thread wherever it runs)."""
     context, test = ctx
-    context.settings["identification"]["max_evaluations"] = 60
+    context.settings["identification"] |= {"max_evaluations": 60, "engine": engine}
     parts = [*context.train, test]
     here = identify(context, parts)
     context.cache.clear()

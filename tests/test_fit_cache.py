@@ -11,12 +11,13 @@ from test_baselines import DT, part
 
 import pipe.model
 from pipe.data.preprocess import Profile
-from pipe.evaluation import fit_cache, identification
+from pipe.evaluation import compiled_objective, fit_cache, identification
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.fit_cache import fit_key
 from pipe.evaluation.identification import identify
 from pipe.model.pipe_model import PIPEModel
 from pipe.plugins.encoder.pointnet import PointNetVAE
+from pipe.plugins.head import gaussian
 from pipe.plugins.head.gaussian import GaussianHead
 from pipe.plugins.model.mds2 import MDS2
 
@@ -104,6 +105,14 @@ def test_the_key_covers_the_source_of_every_simulator_kernel(module):
     out of the key, so a changed kernel would have reused fits made by the old one."""
     source = (Path(pipe.model.__file__).parent / f"{module}.py").read_bytes()
     assert source in fit_cache._code(GaussianHead(32, 4), MDS2())
+
+
+def test_the_key_covers_the_compiled_objective_and_the_head_plugins_kernels():
+    """The compiled engine's fits depend on the core's objective and on kernels that live beside the head's
+    module (plugins/head/gaussian_kernels.py), which no class of the model is defined in."""
+    code = fit_cache._code(GaussianHead(32, 4), MDS2())
+    for path in (Path(compiled_objective.__file__), Path(gaussian.__file__).with_name("gaussian_kernels.py")):
+        assert path.read_bytes() in code
 
 
 def test_the_neutral_start_alone_is_shared_across_seeds_and_random_starts_are_not(tmp_path):

@@ -12,11 +12,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from pipe.model.interfaces import ParameterHead
+from pipe.model.interfaces import CompiledProfiles, ParameterHead
 
 SOFTPLUS_ONE = math.log(math.e - 1.0)  # softplus(SOFTPLUS_ONE) = 1: amplitudes start at 1
 
@@ -151,3 +152,9 @@ class FreeGaussianProfiles(ParameterHead):
     def forward(self, z: torch.Tensor, depth_max: torch.Tensor) -> GaussianProfile:
         rows = self.rows.expand(len(z)) if len(self.rows) == 1 else self.rows
         return self.structure[0].profile(self.amplitude[rows], self.section[rows], self.width[rows], depth_max)
+
+    def compiled(self, depth: np.ndarray) -> CompiledProfiles | None:
+        if len(self.amplitude) != 1:
+            return None
+        from pipe.plugins.head.gaussian_kernels import CompiledFreeProfiles  # numba: where identification runs
+        return CompiledFreeProfiles(self.structure[0], depth)

@@ -3,9 +3,10 @@ One derivative less than mds2: the force follows the depth with a single time co
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
-from pipe.model.interfaces import DynamicModel
+from pipe.model.interfaces import DynamicModel, StateSpaceBackward
 
 
 class MDS1(DynamicModel):
@@ -22,3 +23,12 @@ class MDS1(DynamicModel):
         """x = (F,): F' = (b0 p - a2 F) / a1."""
         a1, a2, b0 = theta.unbind(-1)
         return (-a2 / a1)[..., None, None], (b0 / a1)[..., None]
+
+    def state_space_arrays(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, StateSpaceBackward]:
+        a1, a2, b0 = np.moveaxis(theta, -1, 0)
+
+        def backward(grad_a: np.ndarray, grad_b: np.ndarray) -> np.ndarray:
+            d_a, d_b = grad_a[..., 0, 0], grad_b[..., 0]
+            return np.stack([(d_a * a2 - d_b * b0) / (a1 * a1), -d_a / a1, d_b / a1], -1)
+
+        return (-a2 / a1)[..., None, None], (b0 / a1)[..., None], backward

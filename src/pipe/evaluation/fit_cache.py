@@ -4,8 +4,9 @@ learning curve share the oracle's fits of their test parts and gpr's fits of the
 
 The key hashes the part's name and trials (time, depth and the force fitted), the target, the identification
 settings, the seed where random starts use it, the sample period, the head's and the dynamic model's settings
-(their plain attributes) and the source files of the code that computes a fit (the identification, the
-simulator, the head's and the dynamic model's classes): a changed file or setting misses the cache. A fit is
+(their plain attributes) and the source files of the code that computes a fit (the identification and its
+compiled objective, the simulator, every module of the head's and the dynamic model's plugin packages, their
+compiled kernels among them): a changed file or setting misses the cache. A fit is
 written to a temporary file and renamed into place, so runs in parallel never read half a file.
 """
 
@@ -26,12 +27,11 @@ import numpy as np
 import torch
 from torch import nn
 
-import pipe.model
 from pipe.data.preprocess import Profile
 
 log = logging.getLogger(__name__)
 
-_CODE = ("pipe.evaluation.identification",)     # and every module of pipe.model (the simulator's kernels among them)
+_CODE = ("pipe.evaluation.identification", "pipe.evaluation.compiled_objective")   # and every module of pipe.model
 _PLAIN = (int, float, str, bool)
 
 
@@ -50,13 +50,19 @@ def _source(names: frozenset[str]) -> bytes:
                                                                 if spec is not None and spec.origin))
 
 
+def _package_modules(package: str) -> set[str]:
+    return {f"{package}.{m.name}" for m in pkgutil.iter_modules(importlib.import_module(package).__path__)}
+
+
 def _code(*modules: nn.Module) -> bytes:
-    """The source of the project's code that computes a fit: the identification, every module of pipe.model
-    (the simulator and its compiled kernels, the losses, PIPEModel), and those that define these modules'
-    classes and their bases."""
-    model_modules = {f"pipe.model.{m.name}" for m in pkgutil.iter_modules(pipe.model.__path__)}
-    return _source(frozenset(_CODE) | model_modules | {c.__module__ for m in modules for c in type(m).__mro__
-                                                       if c.__module__.startswith("pipe.")})
+    """The source of the project's code that computes a fit: the identification and its compiled objective,
+    every module of pipe.model (the simulator and its compiled kernels, the losses, PIPEModel), those that
+    define these modules' classes and their bases, and every module of the packages those are in (a plugin's
+    compiled kernels live beside it, e.g. the Gaussian head's)."""
+    defining = {c.__module__ for m in modules for c in type(m).__mro__ if c.__module__.startswith("pipe.")}
+    packages = {name.rpartition(".")[0] for name in defining}
+    return _source(frozenset(_CODE).union(_package_modules("pipe.model"), defining,
+                                          *(_package_modules(p) for p in packages)))
 
 
 def fit_key(part: str, trials: list[Profile], target: str, settings: dict[str, Any], seed: int | None,

@@ -18,6 +18,13 @@ valleys for thousands of evaluations into profiles whose static curves are off b
 The ridge picks the solution nearest the neutral profile, which keeps the oracle's static curves
 meaningful and gpr's targets comparable across parts (BENCHMARKS.md has the measurements).
 
+Two engines fit a start (`engine`): "torch", `torch.optim.LBFGS` on the torch model in float32 (every
+committed result until 2026-11-26), and "compiled", scipy's L-BFGS-B (`scipy.optimize.minimize`, memory
+`history`, its own line search) on the same objective in float64, forward and gradient in compiled pieces
+(`pipe.evaluation.compiled_objective`) where the head and the dynamic model offer them (the Gaussian head,
+mds1 and mds2), the torch engine elsewhere. The two reach fits of the same quality by different steps
+(BENCHMARKS.md), so they are not interchangeable to the bit.
+
 The parameters are scaled by the part's own recordings (`DynamicModel.parameter_scales` of its trials' typical
 force and depth), not by the training parts': the neutral profile, the random starts and the ridge's centre
 are the part's own, so a part's fit does not depend on what PIPE was trained on (the oracle of a learning
@@ -30,7 +37,8 @@ so the fits do not depend on the number of workers.
 
 Stopping rule, per start: every `check_every` L-BFGS iterations the lowest objective so far is compared with
 the one at the previous check; the start has converged when it fell by less than `tolerance` (the MSE by
-less than that share); otherwise it stops after `max_evaluations` loss-and-gradient evaluations. Each start
+less than that share), or (compiled engine) when L-BFGS-B finds no lower objective; otherwise it stops
+after `max_evaluations` loss-and-gradient evaluations. Each start
 keeps the parameters of its lowest objective, and each part the start with the lowest objective of all; the
 reported loss is the mean squared force error there.
 """
@@ -48,6 +56,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+import scipy.optimize
 import torch
 from joblib import Parallel, delayed
 from joblib.externals.loky.process_executor import TerminatedWorkerError
@@ -56,6 +65,7 @@ from pipe.data.batches import TrialBatch, collate_trials
 from pipe.data.prepared import PartData, profile_scales
 from pipe.data.preprocess import Profile
 from pipe.errors import PipeError, options_dataclass
+from pipe.evaluation.compiled_objective import CompiledObjective
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.fit_cache import fit_key, load_fit, store_fit
 from pipe.model import ltv
@@ -63,6 +73,8 @@ from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import masked_mse
 from pipe.model.pipe_model import PIPEModel
 from pipe.threads import threads_set_to
+
+ENGINES = ("torch", "compiled")
 
 
 @dataclass(frozen=True)
@@ -77,6 +89,11 @@ class IdentificationSettings:
     cache: str | None = None      # a folder (relative: to the project root) to store fits in and reuse them
                                   # from; None: within the run only
     workers: int | None = None    # processes fitting starts at once; None: the run's torch threads
+    engine: str = "torch"         # "torch" or "compiled" (see the module's docstring)
+
+    def __post_init__(self) -> None:
+        if self.engine not in ENGINES:
+            raise PipeError(f"unknown evaluation.identification.engine {self.engine!r}; known: {list(ENGINES)}")
 
     @classmethod
     def from_config(cls, values: dict[str, Any] | None) -> IdentificationSettings:
@@ -116,7 +133,58 @@ class StartFit(NamedTuple):
 
 def fit_start(model: PIPEModel, head: ParameterHead, batch: TrialBatch,
               settings: IdentificationSettings) -> StartFit:
-    """Fit one start's free head to a part's trials in place; it ends where its objective was lowest."""
+    """Fit one start's free head to a part's trials in place, on the configured engine; it ends where its
+    objective was lowest."""
+    if settings.engine == "compiled":
+        objective = CompiledObjective.of(model, head, batch, settings.ridge)
+        if objective is not None:
+            return fit_compiled(objective, head, settings)
+    return fit_torch(model, head, batch, settings)
+
+
+def fit_compiled(objective: CompiledObjective, head: ParameterHead, settings: IdentificationSettings) -> StartFit:
+    """The compiled engine: scipy's L-BFGS-B on the float64 objective, the stopping rule checked in its
+    iteration callback; the head's parameters end at the lowest objective it evaluated."""
+    start = torch.nn.utils.parameters_to_vector(head.parameters()).detach().double().numpy()
+    best = (math.inf, math.inf, start)
+    evaluations, iterations, previous = 0, 0, math.inf
+
+    def objective_and_gradient(values: np.ndarray) -> tuple[float, np.ndarray]:
+        nonlocal best, evaluations
+        if evaluations >= settings.max_evaluations:
+            raise _OutOfEvaluations
+        evaluations += 1
+        value, mse, gradient = objective(values)
+        if value < best[0]:
+            best = (value, mse, values.copy())
+        return value, gradient
+
+    def check(intermediate_result: scipy.optimize.OptimizeResult) -> None:
+        nonlocal iterations, previous
+        iterations += 1
+        if iterations % settings.check_every == 0:
+            if previous - best[0] < settings.tolerance:
+                raise StopIteration
+            previous = best[0]
+
+    converged = True     # the stopping rule, or L-BFGS-B finds no lower objective
+    try:
+        scipy.optimize.minimize(objective_and_gradient, start, jac=True, method="L-BFGS-B", callback=check,
+                                options={"maxcor": settings.history, "maxfun": 2 * settings.max_evaluations,
+                                         "maxiter": 2 * settings.max_evaluations, "ftol": 0.0, "gtol": 0.0})
+    except _OutOfEvaluations:
+        converged = False
+    with torch.no_grad():
+        kept = torch.from_numpy(best[2]).float()
+        for parameter in head.parameters():
+            parameter.copy_(kept[:parameter.numel()].view_as(parameter))
+            kept = kept[parameter.numel():]
+    head.eval().requires_grad_(False)
+    return StartFit(best[0], best[1], evaluations, converged)
+
+
+def fit_torch(model: PIPEModel, head: ParameterHead, batch: TrialBatch, settings: IdentificationSettings) -> StartFit:
+    """The torch engine: `torch.optim.LBFGS` with a strong Wolfe line search on the float32 torch model."""
     joint = model.with_head(head.train())
     z = torch.zeros(len(batch.part), head.latent_dim)
     power = float(batch.force[batch.mask].pow(2).mean())

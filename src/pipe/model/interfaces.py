@@ -10,8 +10,10 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import Protocol
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -23,6 +25,21 @@ class ParameterProfile(Protocol):
     """Positive parameter profiles of one batch of parts: call with depths (B, T) to get Theta (B, T, P)."""
 
     def __call__(self, depth: torch.Tensor) -> torch.Tensor: ...
+
+
+class CompiledProfiles(Protocol):
+    """A free head's profiles on fixed trajectories as compiled functions of its flat parameters (its
+    parameters' values in `torch.cat` order), in float64: what system identification evaluates thousands of
+    times per start without torch's per-operation cost (`ParameterHead.compiled`)."""
+
+    def forward(self, values: np.ndarray) -> np.ndarray:
+        """The dimensionless profiles Theta (B, T, P) at the trajectories' depths."""
+
+    def backward(self, grad_theta: np.ndarray) -> np.ndarray:
+        """The gradient of the flat parameters at the last `forward`'s, from that of Theta (B, T, P)."""
+
+
+StateSpaceBackward = Callable[[np.ndarray, np.ndarray], np.ndarray]   # (grad A, grad B) -> grad Theta
 
 
 class ParameterHead(nn.Module, ABC):
@@ -49,6 +66,12 @@ class ParameterHead(nn.Module, ABC):
                         "system identification, which the oracle, oracle_clean and gpr baselines need; leave them "
                         "out of evaluation.baselines")
 
+    def compiled(self, depth: np.ndarray) -> CompiledProfiles | None:
+        """A free head of one set (`free_profiles`) on trajectories depth (B, T) [mm] as `CompiledProfiles`, for
+        system identification's compiled engine; None where the head offers none (the identification then
+        runs on torch)."""
+        return None
+
 
 class DynamicModel(nn.Module, ABC):
     """A linear model with parameters that vary with depth, x' = A(Theta) x + B(Theta) p_z, force F = x[0].
@@ -70,6 +93,12 @@ class DynamicModel(nn.Module, ABC):
     @abstractmethod
     def state_space(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Theta (..., P) -> A (..., n, n) and B (..., n) of x' = A x + B p_z; the force is the state x[0]."""
+
+    def state_space_arrays(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, StateSpaceBackward] | None:
+        """`state_space` on float64 arrays, with its adjoint: A, B and a function from their gradients to
+        Theta's, for system identification's compiled engine; None where the model offers none (the
+        identification then runs on torch)."""
+        return None
 
     def forward(self, theta: torch.Tensor, depth: torch.Tensor, dt: float) -> torch.Tensor:
         """theta (B, T, P) at the samples of depth (B, T) [mm], sample period dt [s] -> force (B, T) [N],

@@ -11,6 +11,8 @@
   recurrence lambda_k = g_k + Phi_k^T lambda_{k+1}, which gives the gradients of Phi, Gamma and u.
 - `CompiledSimulate2`: both of them for a two-state model in one kernel each way (what
   `pipe.model.ltv.simulate` runs for mds2): the same numbers without the step matrices as tensors.
+- `simulate_arrays` and `simulate_arrays_backward`: `simulate` and its adjoint on numpy arrays, for callers
+  that chain compiled pieces without torch (system identification's compiled engine).
 
 All run on CPU float32 or float64 tensors (each dtype compiles once; sums accumulate in float64) and loop
 over the batch in parallel (numba's `prange`, `numba.set_num_threads` caps the threads). Why by hand:
@@ -284,6 +286,37 @@ def recurrence_backward(phi: np.ndarray, gamma: np.ndarray, u: np.ndarray, x: np
                     acc += phi[row, k, i, j] * lam[i]
                 nxt[j] = acc
             lam[:] = nxt
+
+
+def simulate_arrays(a: np.ndarray, b: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    """States x (B, T + 1, n) from x_0 = 0 for A (B, T, n, n), B (B, T, n) and u (B, T), float64 arrays."""
+    batch, steps, n = b.shape
+    x = np.empty((batch, steps + 1, n))
+    if n == 2:
+        simulate2_forward(a, b, u, float(dt), DEGREE_2X2[a.dtype], x)
+    else:
+        phi, gamma = np.empty_like(a), np.empty_like(b)
+        discretize_forward(a.reshape(-1, n, n), b.reshape(-1, n), float(dt), phi.reshape(-1, n, n),
+                           gamma.reshape(-1, n))
+        recurrence_forward(phi, gamma, u, x)
+    return x
+
+
+def simulate_arrays_backward(a: np.ndarray, b: np.ndarray, u: np.ndarray, dt: float, x: np.ndarray,
+                             grad_x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The gradients of A and B from those of the states x of `simulate_arrays` (the input's is not needed)."""
+    batch, steps, n = b.shape
+    grad_a, grad_b, grad_u = np.empty_like(a), np.empty_like(b), np.empty_like(u)
+    if n == 2:
+        simulate2_backward(a, b, u, float(dt), DEGREE_2X2[a.dtype], x, grad_x, grad_a, grad_b, grad_u)
+        return grad_a, grad_b
+    phi, gamma = np.empty_like(a), np.empty_like(b)
+    discretize_forward(a.reshape(-1, n, n), b.reshape(-1, n), float(dt), phi.reshape(-1, n, n), gamma.reshape(-1, n))
+    grad_phi, grad_gamma = np.empty_like(a), np.empty_like(b)
+    recurrence_backward(phi, gamma, u, x, grad_x, grad_phi, grad_gamma, grad_u)
+    discretize_backward(a.reshape(-1, n, n), b.reshape(-1, n), float(dt), grad_phi.reshape(-1, n, n),
+                        grad_gamma.reshape(-1, n), grad_a.reshape(-1, n, n), grad_b.reshape(-1, n))
+    return grad_a, grad_b
 
 
 def _numpy(t: torch.Tensor) -> np.ndarray:

@@ -1,0 +1,69 @@
+"""System identification's objective for one start as a function of the free head's flat parameters, forward
+and adjoint in compiled pieces chained on float64 numpy arrays (`evaluation.identification.engine=compiled`).
+
+The same objective as `pipe.evaluation.identification.fit_start`'s torch closure,
+
+    log(MSE + 1e-6 P) + ridge * mean(v^2),
+
+through the same model (the head's profiles times the parameter scales, held at their midpoints over each
+period, the dynamic model's state space, the simulation from zero state, the masked squared force error),
+but each piece is one compiled call (`ParameterHead.compiled`, `DynamicModel.state_space_arrays`,
+`pipe.model.ltv_numba.simulate_arrays`) and the glue a few numpy operations: torch's per-operation cost,
+about half of an evaluation on tensors of a few hundred numbers, is gone. Float64 throughout, so that
+the optimiser's line search sees a smooth objective.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipe.data.batches import TrialBatch
+from pipe.model.interfaces import CompiledProfiles, ParameterHead
+from pipe.model.pipe_model import PIPEModel
+
+
+class CompiledObjective:
+    """objective(values) -> (objective, MSE, gradient) for one start's flat parameters `values` (float64)."""
+
+    def __init__(self, model: PIPEModel, profiles: CompiledProfiles, batch: TrialBatch, ridge: float) -> None:
+        self.model, self.profiles, self.ridge, self.dt = model, profiles, ridge, batch.dt
+        depth = batch.depth.double().numpy()
+        self.u = 0.5 * (depth[:, 1:] + depth[:, :-1])
+        self.scale = model.theta_scale.double().numpy()
+        self.force = batch.force.double().numpy()
+        self.mask = batch.mask.numpy().astype(np.float64)
+        self.count = float(self.mask.sum())
+        self.floor = 1e-6 * float(batch.force[batch.mask].pow(2).mean())
+
+    @classmethod
+    def of(cls, model: PIPEModel, head: ParameterHead, batch: TrialBatch, ridge: float) -> CompiledObjective | None:
+        """The objective of fitting `head` (a free head of one set) within `model`, or None where the head or
+        the dynamic model offer no compiled form (or numba is missing): the torch engine fits it then."""
+        try:
+            profiles = head.compiled(batch.depth.double().numpy())
+        except ImportError:
+            return None
+        if profiles is None or model.dynamics.state_space_arrays(np.ones((1, len(model.theta_scale)))) is None:
+            return None
+        return cls(model, profiles, batch, ridge)
+
+    def __call__(self, values: np.ndarray) -> tuple[float, float, np.ndarray]:
+        from pipe.model.ltv_numba import simulate_arrays, simulate_arrays_backward
+
+        theta = self.profiles.forward(values) * self.scale
+        held = 0.5 * (theta[:, 1:] + theta[:, :-1])
+        a, b, state_space_backward = self.model.dynamics.state_space_arrays(held)
+        x = simulate_arrays(a, b, self.u, self.dt)
+        error = (x[:, :, 0] - self.force) * self.mask
+        mse = float(np.dot(error.ravel(), error.ravel())) / self.count
+        objective = np.log(mse + self.floor) + self.ridge * float(np.dot(values, values)) / len(values)
+
+        grad_x = np.zeros_like(x)
+        grad_x[:, :, 0] = error * (2.0 / self.count / (mse + self.floor))
+        grad_a, grad_b = simulate_arrays_backward(a, b, self.u, self.dt, x, grad_x)
+        grad_held = state_space_backward(grad_a, grad_b)
+        grad_theta = np.zeros_like(theta)
+        grad_theta[:, 1:] += 0.5 * grad_held
+        grad_theta[:, :-1] += 0.5 * grad_held
+        grad = self.profiles.backward(grad_theta * self.scale) + (2.0 * self.ridge / len(values)) * values
+        return float(objective), mse, grad
