@@ -2,8 +2,7 @@
 own recordings, as classical identification does (the oracle, oracle_clean and gpr's targets).
 
 Each part is fitted from several starts (`restarts`: the neutral profile, then random ones; see
-`ParameterHead.free_profiles`), each start on its own, by L-BFGS with a strong Wolfe line search
-(`torch.optim.LBFGS`) on the objective
+`ParameterHead.free_profiles`), each start on its own, by L-BFGS (see the engines below) on the objective
 
     log(MSE + 1e-6 P) + ridge * mean(v^2)
 
@@ -18,12 +17,12 @@ valleys for thousands of evaluations into profiles whose static curves are off b
 The ridge picks the solution nearest the neutral profile, which keeps the oracle's static curves
 meaningful and gpr's targets comparable across parts (BENCHMARKS.md has the measurements).
 
-Two engines fit a start (`engine`): "torch", `torch.optim.LBFGS` on the torch model in float32 (every
-committed result until 2026-11-26), and "compiled", scipy's L-BFGS-B (`scipy.optimize.minimize`, memory
-`history`, its own line search) on the same objective in float64, forward and gradient in compiled pieces
+Two engines fit a start (`engine`): "compiled" (the default), scipy's L-BFGS-B (`scipy.optimize.minimize`,
+memory `history`, its own line search) on the objective in float64, forward and gradient in compiled pieces
 (`pipe.evaluation.compiled_objective`) where the head and the dynamic model offer them (the Gaussian head,
-mds1 and mds2), the torch engine elsewhere. The two reach fits of the same quality by different steps
-(BENCHMARKS.md), so they are not interchangeable to the bit.
+mds1 and mds2), the torch engine elsewhere; and "torch", `torch.optim.LBFGS` with a strong Wolfe line search
+on the torch model in float32 (the default until 2026-11-26), about 2.5x slower. The two reach fits of the
+same quality by different steps, in different local minima (BENCHMARKS.md), so not the same fits.
 
 The parameters are scaled by the part's own recordings (`DynamicModel.parameter_scales` of its trials' typical
 force and depth), not by the training parts': the neutral profile, the random starts and the ridge's centre
@@ -89,7 +88,7 @@ class IdentificationSettings:
     cache: str | None = None      # a folder (relative: to the project root) to store fits in and reuse them
                                   # from; None: within the run only
     workers: int | None = None    # processes fitting starts at once; None: the run's torch threads
-    engine: str = "torch"         # "torch" or "compiled" (see the module's docstring)
+    engine: str = "compiled"      # "compiled" or "torch" (see the module's docstring)
 
     def __post_init__(self) -> None:
         if self.engine not in ENGINES:
