@@ -7,6 +7,9 @@
 # started again: a run whose results.json exists is kept, an unfinished one is started over. FAMILIES
 # chooses the families (default "pins rect"), e.g. to run them one after the other on separate days or
 # side by side on separate machines. Extra arguments are Hydra overrides for every run.
+# EVALUATE_FROM=<folder of a finished curve> evaluates that curve's trained models again (phase=evaluate,
+# their checkpoints only read) into OUT instead of training: after a change of the evaluation alone (e.g.
+# the identification engine), the same results as a whole new curve in a fraction of its time.
 # The committed curve (README) is measured with train.py's defaults; the curve before it (stage 2's paper loss
 # and a head of width 128, docs/learning_curve/paper_loss_width128/) comes back with
 # stages.head.loss=mse head.hidden=128.
@@ -23,9 +26,11 @@ for family in "${families[@]}"; do
         run="$out/$family/train_$count"
         [ -f "$run/results.json" ] && continue
         rm -rf "$run"
+        trained=()
+        [ -n "${EVALUATE_FROM:-}" ] && trained=(phase=evaluate "resume=$EVALUATE_FROM/$family/train_$count")
         .venv/bin/python train.py data=family "data.generate.family=$family" domain=curve \
             "domain.train_count=$count" 'seeds=[0,1,2]' "hydra.run.dir=$run" trainer.progress_bar=false \
-            "evaluation.identification.cache=$fits" "$@"
+            "evaluation.identification.cache=$fits" "${trained[@]}" "$@"
     done
 done
 .venv/bin/pipe report curve "${families[@]/#/$out/}" --out "$out"

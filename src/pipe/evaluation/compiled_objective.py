@@ -26,6 +26,9 @@ class CompiledObjective:
     """objective(values) -> (objective, MSE, gradient) for one start's flat parameters `values` (float64)."""
 
     def __init__(self, model: PIPEModel, profiles: CompiledProfiles, batch: TrialBatch, ridge: float) -> None:
+        from pipe.model import ltv_numba  # numba: imported where identification runs, not with the module
+
+        self.simulate, self.simulate_backward = ltv_numba.simulate_arrays, ltv_numba.simulate_arrays_backward
         self.model, self.profiles, self.ridge, self.dt = model, profiles, ridge, batch.dt
         depth = batch.depth.double().numpy()
         self.u = 0.5 * (depth[:, 1:] + depth[:, :-1])
@@ -39,28 +42,26 @@ class CompiledObjective:
     def of(cls, model: PIPEModel, head: ParameterHead, batch: TrialBatch, ridge: float) -> CompiledObjective | None:
         """The objective of fitting `head` (a free head of one set) within `model`, or None where the head or
         the dynamic model offer no compiled form (or numba is missing): the torch engine fits it then."""
+        if model.dynamics.state_space_arrays(np.ones((1, len(model.theta_scale)))) is None:
+            return None
         try:
             profiles = head.compiled(batch.depth.double().numpy())
+            return None if profiles is None else cls(model, profiles, batch, ridge)
         except ImportError:
             return None
-        if profiles is None or model.dynamics.state_space_arrays(np.ones((1, len(model.theta_scale)))) is None:
-            return None
-        return cls(model, profiles, batch, ridge)
 
     def __call__(self, values: np.ndarray) -> tuple[float, float, np.ndarray]:
-        from pipe.model.ltv_numba import simulate_arrays, simulate_arrays_backward
-
         theta = self.profiles.forward(values) * self.scale
         held = 0.5 * (theta[:, 1:] + theta[:, :-1])
         a, b, state_space_backward = self.model.dynamics.state_space_arrays(held)
-        x = simulate_arrays(a, b, self.u, self.dt)
+        x = self.simulate(a, b, self.u, self.dt)
         error = (x[:, :, 0] - self.force) * self.mask
         mse = float(np.dot(error.ravel(), error.ravel())) / self.count
         objective = np.log(mse + self.floor) + self.ridge * float(np.dot(values, values)) / len(values)
 
         grad_x = np.zeros_like(x)
         grad_x[:, :, 0] = error * (2.0 / self.count / (mse + self.floor))
-        grad_a, grad_b = simulate_arrays_backward(a, b, self.u, self.dt, x, grad_x)
+        grad_a, grad_b = self.simulate_backward(a, b, self.u, self.dt, x, grad_x)
         grad_held = state_space_backward(grad_a, grad_b)
         grad_theta = np.zeros_like(theta)
         grad_theta[:, 1:] += 0.5 * grad_held
