@@ -6,6 +6,8 @@ on a conn test part's trials (10 trials of up to 487 samples), from the neutral 
   grow with the samples is the fixed cost of torch's autograd and Python);
 - its parts: the Gaussian head's profile Theta(p_z) (forward + backward), the discretisation and the
   recurrence of the compiled simulator;
+- the same evaluation on the compiled engine (`engine=compiled`, float64: `CompiledObjective`) and its
+  pieces: the free profiles' forward and backward, the state space, the simulation's forward and backward;
 - the starts of three parts (two starts each) fitted one after another on all threads, one after another on
   one thread (`fit_jobs` with one worker, what the evaluation does with `workers=1`), and in two worker
   processes of one thread each (`workers=2`, the default on 2 cores; their start-up included).
@@ -106,6 +108,27 @@ def main() -> None:
              "discretisation (compiled)": lambda: sum(t.sum() for t in ltv.discretize(*leaves, batch.dt)).backward(),
              "recurrence (compiled)": lambda: ltv.recurrence(*steps, u).sum().backward()}
     for name, fn in parts.items():
+        print(f"| {name} | {median_ms(fn, args.repeats):.2f} |")
+
+    import numpy as np
+
+    from pipe.evaluation.compiled_objective import CompiledObjective
+
+    objective = CompiledObjective.of(scaled, free, batch, settings.ridge)
+    values = torch.cat([p.detach().reshape(-1) for p in free.parameters()]).double().numpy()
+    theta = objective.profiles.forward(values) * objective.scale
+    held = 0.5 * (theta[:, 1:] + theta[:, :-1])
+    a, b, _ = dynamics.state_space_arrays(held)
+    x = objective.simulate(a, b, objective.u, batch.dt)
+    grad_theta, grad_x = np.ones_like(theta), np.ones_like(x)
+    pieces = {"compiled engine: the whole evaluation (float64)": lambda: objective(values),
+              "compiled engine: free profiles, forward": lambda: objective.profiles.forward(values),
+              "compiled engine: free profiles, backward": lambda: objective.profiles.backward(grad_theta),
+              "compiled engine: state space (numpy)": lambda: dynamics.state_space_arrays(held),
+              "compiled engine: simulation, forward": lambda: objective.simulate(a, b, objective.u, batch.dt),
+              "compiled engine: simulation, backward": lambda: objective.simulate_backward(
+                  a, b, objective.u, batch.dt, x, grad_x)}
+    for name, fn in pieces.items():
         print(f"| {name} | {median_ms(fn, args.repeats):.2f} |")
 
     two = replace(settings, restarts=2)

@@ -10,7 +10,7 @@ import sys
 import pytest
 from conftest import ROOT
 
-KERNEL_TESTS = ["tests/test_model_math.py", "tests/test_simulator.py"]
+KERNEL_TESTS = ["tests/test_model_math.py", "tests/test_simulator.py", "tests/test_compiled_objective.py"]
 
 
 @pytest.mark.slow

@@ -143,7 +143,10 @@ def fit_start(model: PIPEModel, head: ParameterHead, batch: TrialBatch,
 
 def fit_compiled(objective: CompiledObjective, head: ParameterHead, settings: IdentificationSettings) -> StartFit:
     """The compiled engine: scipy's L-BFGS-B on the float64 objective, the stopping rule checked in its
-    iteration callback; the head's parameters end at the lowest objective it evaluated."""
+    iteration callback; the head's parameters end at the lowest objective it evaluated. It runs on one
+    thread whatever the caller's count (the evaluation fits every start on one): the simulation kernels'
+    parallel loop over a part's ~10 trials gains nothing, and on two numba threads an evaluation took 7x
+    longer here (the same numbers either way: each trial is one thread's)."""
     start = torch.nn.utils.parameters_to_vector(head.parameters()).detach().double().numpy()
     best = (math.inf, math.inf, start)
     evaluations, iterations, previous = 0, 0, math.inf
@@ -167,10 +170,12 @@ def fit_compiled(objective: CompiledObjective, head: ParameterHead, settings: Id
             previous = best[0]
 
     converged = True     # the stopping rule, or L-BFGS-B finds no lower objective
+    options = {"maxcor": settings.history, "maxfun": 2 * settings.max_evaluations,
+               "maxiter": 2 * settings.max_evaluations, "ftol": 0.0, "gtol": 0.0}
     try:
-        scipy.optimize.minimize(objective_and_gradient, start, jac=True, method="L-BFGS-B", callback=check,
-                                options={"maxcor": settings.history, "maxfun": 2 * settings.max_evaluations,
-                                         "maxiter": 2 * settings.max_evaluations, "ftol": 0.0, "gtol": 0.0})
+        with threads_set_to(1):
+            scipy.optimize.minimize(objective_and_gradient, start, jac=True, method="L-BFGS-B", callback=check,
+                                    options=options)
     except _OutOfEvaluations:
         converged = False
     with torch.no_grad():
