@@ -27,26 +27,14 @@ def main() -> None:
     args = parser.parse_args()
     os.environ.setdefault("PROJECT_ROOT", str(ROOT))
     import torch
-    from hydra import compose, initialize_config_module
+    from identification_setup import identification_setup
 
-    from pipe.data.prepared import data_scales
     from pipe.data.preprocess import Profile
-    from pipe.evaluation.context import EvalContext
-    from pipe.evaluation.identification import IdentificationSettings, fit_job, part_jobs
-    from pipe.model import ltv
-    from pipe.model.pipe_model import PIPEModel
-    from pipe.pipeline import build_components, load_domain
+    from pipe.evaluation.identification import fit_job, part_jobs
 
     torch.set_num_threads(1)
-    with initialize_config_module("pipe.conf", version_base="1.3"):
-        cfg = compose("config", overrides=[f"domain={args.domain}"])
-    data = load_domain(cfg)
-    encoder, head, dynamics = build_components(cfg)
-    train, test = data.splits["train"], data.splits["test"]
-    ctx = EvalContext(PIPEModel(encoder, head, dynamics, *data_scales(train)), torch.zeros(1, encoder.latent_dim),
-                      {}, train, 1.0 / cfg.data.rate_hz, 0, dict(cfg.evaluation))
-    ltv.set_backend("compiled")
-    settings = IdentificationSettings.from_config(cfg.evaluation.identification)
+    setup = identification_setup(args.domain)
+    train, test, ctx, settings = setup["train"], setup["test"], setup["ctx"], setup["settings"]
     totals = {engine: [0, 0.0] for engine in ("torch", "compiled")}
     warm_up = [Profile(p.time, p.depth, p.force) for p in test[0].profiles]
     for engine in totals:    # loads numba's cached kernels and scipy, not timed

@@ -38,34 +38,17 @@ def main() -> None:
     args = parser.parse_args()
     os.environ.setdefault("PROJECT_ROOT", str(ROOT))
     import torch
-    from hydra import compose, initialize_config_module
+    from identification_setup import identification_setup
 
     from pipe.data.batches import collate_trials
-    from pipe.data.prepared import data_scales, profile_scales
+    from pipe.data.prepared import profile_scales
     from pipe.data.preprocess import Profile
-    from pipe.evaluation.context import EvalContext
-    from pipe.evaluation.identification import (
-        IdentificationSettings,
-        StartJob,
-        fit_jobs,
-        fit_start,
-        part_jobs,
-        start_head,
-    )
+    from pipe.evaluation.identification import StartJob, fit_jobs, fit_start, part_jobs, start_head
     from pipe.model import ltv
     from pipe.model.losses import masked_mse
-    from pipe.model.pipe_model import PIPEModel
-    from pipe.pipeline import build_components, load_domain
 
-    with initialize_config_module("pipe.conf", version_base="1.3"):
-        cfg = compose("config", overrides=["domain=conn"])
-    data = load_domain(cfg)
-    encoder, head, dynamics = build_components(cfg)
-    train, test = data.splits["train"], data.splits["test"]
-    ctx = EvalContext(PIPEModel(encoder, head, dynamics, *data_scales(train)), torch.zeros(1, encoder.latent_dim),
-                      {}, train, 1.0 / cfg.data.rate_hz, 0, dict(cfg.evaluation))
-    ltv.set_backend("compiled")
-    settings = IdentificationSettings.from_config(cfg.evaluation.identification)
+    setup = identification_setup("conn")
+    test, ctx, settings, dynamics = setup["test"], setup["ctx"], setup["settings"], setup["dynamics"]
     jobs = [(part, [Profile(p.time, p.depth, p.force) for p in part.profiles]) for part in test]
     part, trials = jobs[0]
     batch = collate_trials([(0, p) for p in trials])
