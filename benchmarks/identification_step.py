@@ -8,9 +8,9 @@ on a conn test part's trials (10 trials of up to 487 samples), from the neutral 
   recurrence of the compiled simulator;
 - the same evaluation on the compiled engine (`engine=compiled`, float64: `CompiledObjective`) and its
   pieces: the free profiles' forward and backward, the state space, the simulation's forward and backward;
-- the starts of three parts (two starts each) fitted one after another on all threads, one after another on
-  one thread (`fit_jobs` with one worker, what the evaluation does with `workers=1`), and in two worker
-  processes of one thread each (`workers=2`, the default on 2 cores; their start-up included).
+- the starts of three parts (two starts each) fitted one after another (`fit_jobs` with one worker, what the
+  evaluation does with `workers=1`; every start runs on one thread) and in two worker processes
+  (`workers=2`, the default on 2 cores; their start-up included).
 
     python benchmarks/identification_step.py [--repeats 200]
 """
@@ -43,7 +43,7 @@ def main() -> None:
     from pipe.data.batches import collate_trials
     from pipe.data.prepared import profile_scales
     from pipe.data.preprocess import Profile
-    from pipe.evaluation.identification import StartJob, fit_jobs, fit_start, part_jobs, start_head
+    from pipe.evaluation.identification import StartJob, fit_jobs, part_jobs, start_head
     from pipe.model import ltv
     from pipe.model.losses import masked_mse
 
@@ -121,10 +121,6 @@ def main() -> None:
 
     print("\n| three parts, two starts each | seconds |")
     print("| --- | --- |")
-    start = time.perf_counter()
-    for job in start_jobs():
-        fit_start(job.model, job.head, job.batch, job.settings)
-    print(f"| one after another, {torch.get_num_threads()} threads | {time.perf_counter() - start:.2f} |")
     for workers in (1, 2):
         start = time.perf_counter()
         fit_jobs(start_jobs(), workers)

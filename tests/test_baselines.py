@@ -27,7 +27,6 @@ from pipe.plugins.encoder.pointnet import PointNetVAE
 from pipe.plugins.head.gaussian import GaussianHead
 from pipe.plugins.model.mds2 import MDS2
 from pipe.synthetic import generate_dataset
-from pipe.threads import threads_set_to
 
 DT = 0.01
 TIME = np.arange(0, 2.0, DT)
@@ -446,6 +445,5 @@ def test_default_settings_let_a_slow_pin_fit_converge(tmp_path, engine):
                        engine=engine)
     trials = [Profile(p.time, p.depth, p.force) for p in dowel.profiles]
     job = identification.part_jobs(context, "dowel6", trials, replace(settings, restarts=2))[1]
-    with threads_set_to(1):      # as the evaluation fits every start
-        fit = identification.fit_start(job.model, job.head, job.batch, settings)
+    fit = identification.fit_start(job.model, job.head, job.batch, settings)
     assert fit.converged and fit.evaluations < settings.max_evaluations, fit

@@ -10,7 +10,7 @@ import torch
 from pipe.data.batches import collate_trials
 from pipe.data.preprocess import Profile
 from pipe.evaluation.compiled_objective import CompiledObjective
-from pipe.evaluation.identification import IdentificationSettings, fit_compiled, start_head
+from pipe.evaluation.identification import IdentificationSettings, fit_start, start_head
 from pipe.model import ltv
 from pipe.model.losses import masked_mse
 from pipe.model.pipe_model import PIPEModel
@@ -98,26 +98,28 @@ def test_the_softmax_exponential_is_exact_to_float64_rounding_where_it_matters()
     assert _exp_nonpositive(-1e4) == pytest.approx(np.exp(EXP_FLOOR), rel=1e-12)
 
 
-def test_the_compiled_engine_fits_on_one_thread_whatever_the_callers_count():
+def test_the_compiled_engine_fits_on_one_thread_whatever_the_callers_count(monkeypatch):
     """Regression: on two numba threads the simulation's parallel loop over a part's ~10 trials made each
-    evaluation about 7x slower; `fit_compiled` evaluates on one thread, torch's and numba's, and restores the
+    evaluation about 7x slower; `fit_start` evaluates on one thread, torch's and numba's, and restores the
     caller's counts (tests/test_kernel_threads.py runs this file again with two numba threads)."""
     head = GaussianHead(8, 4, num_local_models=5)
     free = start_head(head, "part", seed=0, start=0)
     batch = collate_trials([(0, p) for p in trials((120, 160))])
-    objective = CompiledObjective.of(PIPEModel(None, head, MDS2(), 12.0, 4.0), free, batch, ridge=0.1)
     seen = []
+    evaluate = CompiledObjective.__call__
 
-    def recording(values):
+    def recording(objective, values):
         seen.append((torch.get_num_threads(), numba.get_num_threads()))
-        return CompiledObjective.__call__(objective, values)
+        return evaluate(objective, values)
 
+    monkeypatch.setattr(CompiledObjective, "__call__", recording)
     callers = (torch.get_num_threads(), numba.get_num_threads())
     torch.set_num_threads(2)
     numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
     before = (torch.get_num_threads(), numba.get_num_threads())
     try:
-        fit = fit_compiled(recording, free, IdentificationSettings(max_evaluations=5))
+        fit = fit_start(PIPEModel(None, head, MDS2(), 12.0, 4.0), free, batch,
+                        IdentificationSettings(max_evaluations=5))
         after = (torch.get_num_threads(), numba.get_num_threads())
     finally:
         torch.set_num_threads(callers[0])

@@ -132,21 +132,21 @@ class StartFit(NamedTuple):
 
 def fit_start(model: PIPEModel, head: ParameterHead, batch: TrialBatch,
               settings: IdentificationSettings) -> StartFit:
-    """Fit one start's free head to a part's trials in place, on the configured engine; it ends where its
+    """Fit one start's free head to a part's trials in place, on the configured engine and on one thread
+    whatever the caller's count (the same arithmetic in every process; on two numba threads the simulation's
+    parallel loop over a part's ~10 trials made a compiled evaluation 7x slower); it ends where its
     objective was lowest."""
-    if settings.engine == "compiled":
-        objective = CompiledObjective.of(model, head, batch, settings.ridge)
-        if objective is not None:
-            return fit_compiled(objective, head, settings)
-    return fit_torch(model, head, batch, settings)
+    with threads_set_to(1):
+        if settings.engine == "compiled":
+            objective = CompiledObjective.of(model, head, batch, settings.ridge)
+            if objective is not None:
+                return fit_compiled(objective, head, settings)
+        return fit_torch(model, head, batch, settings)
 
 
 def fit_compiled(objective: CompiledObjective, head: ParameterHead, settings: IdentificationSettings) -> StartFit:
     """The compiled engine: scipy's L-BFGS-B on the float64 objective, the stopping rule checked in its
-    iteration callback; the head's parameters end at the lowest objective it evaluated. It runs on one
-    thread whatever the caller's count (the evaluation fits every start on one): the simulation kernels'
-    parallel loop over a part's ~10 trials gains nothing, and on two numba threads an evaluation took 7x
-    longer here (the same numbers either way: each trial is one thread's)."""
+    iteration callback; the head's parameters end at the lowest objective it evaluated."""
     start = torch.nn.utils.parameters_to_vector(head.parameters()).detach().double().numpy()
     best = (math.inf, math.inf, start)
     evaluations, iterations, previous = 0, 0, math.inf
@@ -173,16 +173,11 @@ def fit_compiled(objective: CompiledObjective, head: ParameterHead, settings: Id
     options = {"maxcor": settings.history, "maxfun": 2 * settings.max_evaluations,
                "maxiter": 2 * settings.max_evaluations, "ftol": 0.0, "gtol": 0.0}
     try:
-        with threads_set_to(1):
-            scipy.optimize.minimize(objective_and_gradient, start, jac=True, method="L-BFGS-B", callback=check,
-                                    options=options)
+        scipy.optimize.minimize(objective_and_gradient, start, jac=True, method="L-BFGS-B", callback=check,
+                                options=options)
     except _OutOfEvaluations:
         converged = False
-    with torch.no_grad():
-        kept = torch.from_numpy(best[2]).float()
-        for parameter in head.parameters():
-            parameter.copy_(kept[:parameter.numel()].view_as(parameter))
-            kept = kept[parameter.numel():]
+    torch.nn.utils.vector_to_parameters(torch.from_numpy(best[2]).float(), head.parameters())
     head.eval().requires_grad_(False)
     return StartFit(best[0], best[1], evaluations, converged)
 
@@ -238,9 +233,8 @@ class StartJob(NamedTuple):
 
 
 def fit_job(job: StartJob) -> tuple[dict[str, torch.Tensor], StartFit]:
-    """A start fitted on one thread (the same arithmetic in every process): its head's state and its fit."""
-    with threads_set_to(1):
-        fit = fit_start(job.model, job.head, job.batch, job.settings)
+    """A start fitted (`fit_start`): its head's state and its fit."""
+    fit = fit_start(job.model, job.head, job.batch, job.settings)
     return job.head.state_dict(), fit
 
 
