@@ -78,7 +78,7 @@ ENGINES = ("torch", "compiled")
 
 @dataclass(frozen=True)
 class IdentificationSettings:
-    restarts: int = 3             # starts per part: the neutral profile and restarts - 1 random ones
+    restarts: int = 12            # starts per part: the neutral profile and restarts - 1 random ones
     check_every: int = 20         # L-BFGS iterations between two convergence checks
     tolerance: float = 1e-4       # converged once check_every iterations lower the objective by less than this
     max_evaluations: int = 10000  # loss-and-gradient evaluations per start at most: a guard against a start
