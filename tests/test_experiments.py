@@ -129,3 +129,38 @@ def test_part_cv_table_averages_the_held_out_parts_per_seed(tmp_path):
     # above default in 2 of the 4 held-out cases (60 > 50, 90 > 30)
     assert f"| pins | default | 2 | 57.50 ± {statistics.stdev([60.0, 55.0]):.2f} | 60.00 |  |" in printed
     assert "| pins | loss=nmse | 2 | 50.00 ± 0.00 | 50.00 | 2 of 4 |" in printed
+
+
+@pytest.mark.slow
+def test_oracle_starts_reproduce_the_runs_oracle_with_its_own_number_of_starts(trained_run, tmp_path):
+    rows_file = tmp_path / "rows.jsonl"
+    from omegaconf import OmegaConf
+
+    restarts = OmegaConf.load(trained_run.run_dir / "config.yaml").evaluation.identification.restarts
+    run_script("oracle_starts.py", str(rows_file), str(trained_run.run_dir), "--starts", str(restarts + 1))
+    rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
+    assert [row["starts"] for row in rows] == list(range(1, restarts + 2))
+    # the first starts are the evaluation's own: with as many, the run's reported oracle to the digit
+    own = rows[restarts - 1]
+    assert own["fit_F"] == pytest.approx(trained_run.results["oracle"].domain["fit_F"], abs=1e-9)
+    # the best of more starts is never a higher objective
+    for part in own["parts"]:
+        objectives = [row["parts"][part]["objective"] for row in rows]
+        assert all(later <= earlier for earlier, later in zip(objectives, objectives[1:]))
+
+
+def test_oracle_starts_table_counts_the_cases_already_at_the_best_objective(tmp_path):
+    objectives = {("runs/dsub/seed_0", 1): -1.0, ("runs/dsub/seed_0", 2): -2.0,
+                  ("runs/dsub/seed_1", 1): -3.0, ("runs/dsub/seed_1", 2): -3.0}
+    fits = {("runs/dsub/seed_0", 1): 80.0, ("runs/dsub/seed_0", 2): 84.0,
+            ("runs/dsub/seed_1", 1): 86.0, ("runs/dsub/seed_1", 2): 86.0}
+    rows = [{"run": run, "target": "force", "starts": k, "fit_F": fits[(run, k)],
+             "parts": {"dsub26": {"objective": objective, "fit_F": fits[(run, k)]}}}
+            for (run, k), objective in objectives.items()]
+    rows_file = tmp_path / "rows.jsonl"
+    rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    printed = run_script("oracle_starts.py", str(rows_file), "--table")
+    # one start: seeds at 80 and 86, only seed 1 already at its best objective; two: 84 and 86, both
+    spread_one, spread_two = statistics.stdev([80.0, 86.0]), statistics.stdev([84.0, 86.0])
+    assert (f"| dsub | force | 83.00 ± {spread_one:.2f} (50 %) | 85.00 ± {spread_two:.2f} (100 %) |"
+            in printed)
