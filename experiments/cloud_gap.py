@@ -23,7 +23,7 @@ import trimesh
 
 from pipe.data.dataset import load_dataset
 from pipe.data.mesh import load_mesh, orient
-from pipe.data.preprocess import sample_point_cloud
+from pipe.data.preprocess import cloud_from_mesh
 from pipe.data.spec import load_spec
 
 SHARP_DEGREES = 30.0
@@ -47,12 +47,13 @@ def sharp_edge_points(mesh: trimesh.Trimesh, n: int, seed: int) -> np.ndarray:
 
 
 def cloud(path: Path, units: str, axis: str, n: int, seed: int, edge_fraction: float) -> np.ndarray:
-    """The part's cloud as the pipeline samples it, a share `edge_fraction` of it along the sharp edges."""
-    mesh = orient(load_mesh(path, units), axis, path)
+    """The part's cloud as the pipeline samples it, a share `edge_fraction` of it along the sharp edges (in the
+    same frame and about the same centre)."""
     on_edges = int(round(n * edge_fraction))
-    sampled = sample_point_cloud(mesh, n - on_edges, seed=seed)
+    sampled = cloud_from_mesh(path, units, n - on_edges, seed, axis)
     if on_edges == 0:
         return sampled.points
+    mesh = orient(load_mesh(path, units), axis, path)
     return np.concatenate([sampled.points, sharp_edge_points(mesh, on_edges, seed) - sampled.centre])
 
 
