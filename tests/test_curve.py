@@ -73,7 +73,15 @@ def test_the_curve_table_holds_each_runs_spread_and_the_gap_pipe_closes(tmp_path
     assert "| method | 5 | 100 | PIPE vs it at 100 |" in table
     assert "| nearest | 48.00 ± 5.00 | 65.00 ± 2.00 | better |" in table   # 10 apart, spreads add to 3
     assert "| oracle | 85.00 ± 1.00 | 85.00 ± 1.00 | worse |" in table
-    assert "PIPE closes 50% of the gap" in table
+    assert "PIPE closes 50.0% of the gap" in table
+
+
+def test_a_share_just_under_half_is_not_rounded_up_to_half(tmp_path):
+    """Regression: the share was printed to a whole per cent, so the rect curve's 49.7 % read as the issue's
+    "at least half"."""
+    sweep = tmp_path / "rect"
+    write_run(sweep / "train_100", 100, {"pipe": (69.86, 3.8), "nearest": (51.33, 13.9), "oracle": (88.59, 1.3)})
+    assert "PIPE closes 49.7% of the gap" in curve_markdown(read_curve([sweep]))
 
 
 def test_the_curve_gives_pipe_minus_nearest_seed_by_seed(tmp_path):

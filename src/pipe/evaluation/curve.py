@@ -114,7 +114,7 @@ def curve_markdown(curve: Curve, paired: Paired | None = None) -> str:
             lines += ["", f"pipe - {PAIRED_WITH}, seed by seed: PIPE's FIT(F) minus `{PAIRED_WITH}`'s in each seed's "
                           "run (both predict with that seed's encoder and head), mean ± std over the seeds."]
         if closed is not None:
-            lines += ["", f"At {largest} training parts PIPE closes {closed:.0%} of the gap between `nearest` and "
+            lines += ["", f"At {largest} training parts PIPE closes {closed:.1%} of the gap between `nearest` and "
                           "the oracle (of their means)."]
         lines.append("")
     return "\n".join(lines)
