@@ -10,7 +10,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from pipe.data.prepared import PreparedDomain
+from pipe.data.prepared import PreparedDomain, data_scales
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.model import ltv
@@ -30,6 +30,18 @@ def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, Prepare
     L.seed_everything(cfg.seed, workers=True)
     data = load_domain(cfg)
     return cfg, data, build_components(cfg)
+
+
+def oracle_context(run_dir: Path) -> tuple[DictConfig, list, EvalContext]:
+    """The run's config, its test parts and an evaluation context to identify them in as the oracle does: the
+    run's untrained model (identification uses only the head's profile structure and the dynamic model) and
+    zero codes (the oracle's free profiles read none)."""
+    cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+    train, test = data.splits["train"], data.splits["test"]
+    model = PIPEModel(encoder, head, dynamics, *data_scales(train)).eval()
+    ctx = EvalContext(model, torch.zeros(len(test), head.latent_dim), {p.name: i for i, p in enumerate(test)},
+                      train, 1.0 / cfg.data.rate_hz, cfg.seed, dict(cfg.evaluation))
+    return cfg, test, ctx
 
 
 def load_encoder(encoder: torch.nn.Module, run_dir: Path) -> None:

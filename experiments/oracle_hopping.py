@@ -20,14 +20,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import append_row, load_run
+from common import append_row, oracle_context
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from pipe.data.prepared import data_scales
 from pipe.data.preprocess import Profile
-from pipe.evaluation.context import EvalContext
 from pipe.evaluation.identification import IdentificationSettings, StartJob, fit_start, part_jobs
-from pipe.model.pipe_model import PIPEModel
 
 
 def hop(job: StartJob, hops: int, sigma: float, rng: np.random.Generator) -> tuple[list[float], int]:
@@ -56,13 +53,8 @@ def main() -> None:
     ap.add_argument("--hops", type=int, default=11, help="hops after the first fit (random starts: 1 + hops)")
     args = ap.parse_args()
     for run in args.runs:
-        cfg, data, (encoder, head, dynamics) = load_run(Path(run))
-        train, test = data.splits["train"], data.splits["test"]
-        model = PIPEModel(encoder, head, dynamics, *data_scales(train)).eval()
-        evaluation = dict(cfg.evaluation)
-        settings = replace(IdentificationSettings.from_config(evaluation.get("identification")), cache=None)
-        ctx = EvalContext(model, torch.zeros(len(test), head.latent_dim), {p.name: i for i, p in enumerate(test)},
-                          train, 1.0 / cfg.data.rate_hz, cfg.seed, evaluation)
+        cfg, test, ctx = oracle_context(Path(run))
+        settings = replace(IdentificationSettings.from_config(ctx.settings.get("identification")), cache=None)
         rng = np.random.default_rng(cfg.seed)
         for part in test:
             trials = [Profile(p.time, p.depth, p.force) for p in part.profiles]

@@ -24,15 +24,11 @@ from collections import defaultdict
 from dataclasses import replace
 from pathlib import Path
 
-import torch
-from common import append_row, load_run
+from common import append_row, oracle_context
 
-from pipe.data.prepared import data_scales
 from pipe.data.preprocess import Profile
-from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.evaluation.identification import IdentificationSettings, Identified, fit_jobs, part_jobs
-from pipe.model.pipe_model import PIPEModel
 
 ORACLES = {"force": "oracle", "force_clean": "oracle_clean"}
 SAME = 1e-3     # objectives this close count as one basin (the stopping rule's tolerance is 1e-4 per check)
@@ -81,16 +77,10 @@ def main() -> None:
         print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
         return
     for run in args.runs:
-        cfg, data, (encoder, head, dynamics) = load_run(Path(run))
-        train, test = data.splits["train"], data.splits["test"]
-        model = PIPEModel(encoder, head, dynamics, *data_scales(train)).eval()
-        index = {p.name: i for i, p in enumerate(test)}
-        latents = torch.zeros(len(test), head.latent_dim)       # the oracle's free profiles read no code
-        evaluation = dict(cfg.evaluation)
-        settings = replace(IdentificationSettings.from_config(evaluation.get("identification")),
+        cfg, test, ctx = oracle_context(Path(run))
+        settings = replace(IdentificationSettings.from_config(ctx.settings.get("identification")),
                            restarts=args.starts, cache=None)
         for target in args.targets:
-            ctx = EvalContext(model, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed, evaluation)
             starts = {}
             for part in test:
                 trials = [Profile(p.time, p.depth, getattr(p, target)) for p in part.profiles]
@@ -100,20 +90,18 @@ def main() -> None:
                 kept = {}
                 for name, fitted in starts.items():
                     job, (state, fit) = min(fitted[:k], key=lambda start: start[1][1].objective)
-                    free = job.head
-                    free.load_state_dict(state)
-                    kept[name] = (Identified(model.with_head(free, job.model.theta_scale), fit.loss,
+                    job.head.load_state_dict(state)
+                    kept[name] = (Identified(ctx.model.with_head(job.head, job.model.theta_scale), fit.loss,
                                              fit.evaluations, fit.converged), fit.objective)
-                scored = EvalContext(model, latents, index, train, ctx.dt, cfg.seed,
-                                     {**evaluation, "identification": {**evaluation["identification"],
-                                                                       "restarts": k}})
-                scored.cache[f"identified_{target}_{k}"] = {name: fitted for name, (fitted, _) in kept.items()}
+                scored = replace(ctx, cache={f"identified_{target}_{k}": {name: fitted for name, (fitted, _) in
+                                                                          kept.items()}},
+                                 settings={**ctx.settings, "identification": {**ctx.settings["identification"],
+                                                                              "restarts": k}})
                 result = evaluate_methods(scored, test, [ORACLES[target]])[ORACLES[target]]
                 append_row(args.out, {
                     "run": run, "target": target, "starts": k, "fit_F": result.domain["fit_F"],
                     "parts": {name: {"objective": objective, "fit_F": result.per_part[name]["fit_F"]}
                               for name, (_, objective) in kept.items()}})
-
 
 if __name__ == "__main__":
     os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
