@@ -25,6 +25,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from common import append_row, oracle_context
+from summarise import domain_of
 
 from pipe.data.preprocess import Profile
 from pipe.evaluation.evaluate import evaluate_methods
@@ -33,12 +34,6 @@ from pipe.evaluation.identification import IdentificationSettings, Identified, f
 ORACLES = {"force": "oracle", "force_clean": "oracle_clean"}
 SAME = 1e-3     # objectives this close count as one basin (the stopping rule's tolerance is 1e-4 per check)
 SHOWN = (1, 2, 3, 4, 6, 8, 10, 12)
-
-
-def domain_of(run: str) -> str:
-    """runs/pins/seed_0 -> pins; runs/curve_defaults/rect/train_100/seed_0 -> rect/train_100."""
-    parts = Path(run).parts
-    return "/".join(parts[2:-1]) if len(parts) > 3 else parts[-2]
 
 
 def table(rows: list[dict]) -> str:

@@ -29,16 +29,12 @@ from pathlib import Path
 from common import append_row, load_encoder, load_run, pipe_fit
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
 from stage2_variants import parse_variant, variant_config, variant_head, variant_stage
+from summarise import domain_of
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
 from pipe.model.pipe_model import PIPEModel
 from pipe.training import fit as fit_module
-
-
-def domain_of(run: str) -> str:
-    """The run folder's domain: runs/pins/seed_0 -> pins."""
-    return Path(run).parent.name
 
 
 def table(rows: list[dict]) -> str:
@@ -75,9 +71,9 @@ def main() -> None:
         return
     variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]
     for spec, variant in variants:     # before any run: what a fold without validation parts cannot do
-        if variant.keys() & {"select", "std", "last"}:
+        if variant.keys() & {"select", "std", "last", "encoder", "mu"}:
             raise SystemExit(f"unsupported variant {spec!r}: a fold has no validation parts to select on, and "
-                             "std and last are not supported here")
+                             "std, last, encoder and mu are not supported here")
     for run in args.runs:
         run_dir = Path(run)
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)

@@ -26,6 +26,10 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
   local=N      a head of N local models per parameter instead of the configured number (head.num_local_models)
   pretrain=S   the head first takes S Adam steps towards the training parts' identified profiles (gpr's
                targets: profile_pretraining.py), then stage 2 as usual
+  encoder=L    the encoder is not frozen: stage 2 fine-tunes it with learning rate L beside the head (its
+               batch-norm statistics stay frozen), and PIPE and `nearest` read the fine-tuned encoder's codes
+  mu=L         as encoder=L for the encoder's last part only, the network from its pooled features to the
+               code's mean (`to_mu`), on the features of the frozen rest computed once: as cheap as the default
 Variants combine with "+", e.g. loss=nmse+epochs=1000.
 Results: docs/experiments.md. Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/stage2_variants.py OUT.jsonl runs/conn/seed_0 ... \
@@ -75,12 +79,33 @@ class Standardised(torch.nn.Module):
 
 
 def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
-                  steps_per_epoch: int, val_fit: Callable[[], float], kept: dict) -> type[HeadStage]:
+                  steps_per_epoch: int, val_fit: Callable[[], float], kept: dict,
+                  clouds: torch.Tensor | None = None) -> type[HeadStage]:
     """HeadStage with the variant's training codes, optimiser and callbacks (`variant`: each kind's value, 0
     where it takes none); `select=fit` keeps in `kept` the head's state of the epoch where `val_fit` was
-    highest."""
+    highest; `encoder=L` encodes the parts' `clouds` (in the order of the codes) at every step, `mu=L` maps
+    their pooled features to the codes at every step."""
+    tuned = "encoder" if "encoder" in variant else "mu" if "mu" in variant else None
 
     class Stage(HeadStage):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            if tuned:
+                self.tuned_part().requires_grad_(True)
+                if tuned == "mu":
+                    with torch.no_grad():
+                        self.features = self.model.encoder.eval().features(clouds / self.model.encoder.input_scale)
+
+        def tuned_part(self) -> torch.nn.Module:
+            return self.model.encoder if tuned == "encoder" else self.model.encoder.to_mu
+
+        def codes(self, batch):
+            if tuned == "encoder":
+                return self.model.encoder.encode(clouds[batch.part])[0]
+            if tuned == "mu":
+                return self.model.encoder.to_mu(self.features[batch.part])
+            return self.latents[batch.part]
+
         def on_validation_epoch_end(self):
             if "select" not in variant or self.trainer.sanity_checking:
                 return
@@ -90,7 +115,7 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
                             state=copy.deepcopy(self.model.head.state_dict()))
 
         def _step(self, batch, split):
-            z = self.latents[batch.part]
+            z = self.codes(batch)
             if split == "train" and "noise" in variant:
                 z = z + torch.randn_like(z) * spread * variant["noise"]
             if split == "train" and "sample" in variant:
@@ -101,6 +126,9 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
             return loss
 
         def configure_optimizers(self):
+            if tuned:
+                return torch.optim.Adam([{"params": self.model.head.parameters(), "lr": self.lr},
+                                         {"params": self.tuned_part().parameters(), "lr": variant[tuned]}])
             if "wd" in variant:
                 return torch.optim.AdamW(self.model.head.parameters(), lr=self.lr, weight_decay=variant["wd"])
             if "cosine" in variant:
@@ -118,7 +146,7 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
 
 
 KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr",
-         "pretrain", "hidden", "local")
+         "pretrain", "hidden", "local", "encoder", "mu")
 HEAD_SIZES = {"hidden": "hidden", "local": "num_local_models"}    # variant kind: the head's option it sets
 WORDS = {"select": ("fit",), "loss": tuple(FORCE_LOSSES)}     # the kinds whose value is a word, and their words
 
@@ -178,11 +206,13 @@ def main() -> None:
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         model = PIPEModel(encoder, head, dynamics, *data_scales(train))
         index = {p.name: i for i, p in enumerate(train + val + test)}
-        latents, logvars = model.latent_distribution(stack_clouds(train + val + test))
+        clouds = stack_clouds(train + val + test)
+        latents, logvars = model.latent_distribution(clouds)
         spread = latents[: len(train)].std(0)
         targets = (profile_targets(cfg, model, latents, index, train, args.fits)
                    if any("pretrain" in variant for _, variant in variants) else None)
         for spec, variant in variants:
+            load_encoder(encoder, run_dir)      # the run's own again after a variant that fine-tuned it
             trained, initial = heads[spec]
             trained.load_state_dict(initial)
             base = model.with_head(trained)
@@ -194,7 +224,8 @@ def main() -> None:
             run_cfg = variant_config(cfg, variant)
             kept: dict = {}
             fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
-                                                 partial(pipe_fit, cfg, data, candidate, latents, index, "val"), kept)
+                                                 partial(pipe_fit, cfg, data, candidate, latents, index, "val"), kept,
+                                                 clouds)
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 fit_module.fit_head(run_cfg, candidate, latents, index, train, val, Path(tmp), False, [])
@@ -202,8 +233,10 @@ def main() -> None:
                     load_head_stage(candidate, Path(tmp) / "checkpoints/head/last.ckpt")
             if "select" in variant:
                 trained.load_state_dict(kept.pop("state"))
+            with torch.no_grad():
+                codes = candidate.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else latents
             score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start, **kept},
-                  cfg, data, candidate, latents, index)
+                  cfg, data, candidate, codes, index)
 
 if __name__ == "__main__":
     os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))

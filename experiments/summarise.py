@@ -20,9 +20,10 @@ def spread(values: list[float]) -> str:
 
 
 def domain_of(run: str) -> str:
-    """runs/conn/seed_0 -> conn; runs/curve/pins/train_20/seed_0 -> pins/train_20."""
+    """A run folder's domain: runs/conn/seed_0 -> conn; a learning curve's seed folders, such as
+    runs/curve/pins/train_20/seed_0 or runs/curve_defaults/rect/train_100/seed_0 -> pins/train_20, rect/train_100."""
     parts = Path(run).parts
-    return "/".join(parts[parts.index("curve") + 1:-1]) if "curve" in parts else parts[-2]
+    return "/".join(parts[-3:-1]) if parts[-2].startswith("train_") else parts[-2]
 
 
 def main(paths: list[str]) -> None:

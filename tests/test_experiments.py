@@ -25,9 +25,10 @@ def run_script(*args: str) -> str:
 def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
     run_script("stage2_variants.py", str(rows_file), str(trained_run.run_dir), "--fits", str(tmp_path / "fits"),
-               "--variants", "default,epochs=1,select=fit,loss=mse,loss=mse+epochs=1,hidden=16,local=3,pretrain=20")
-    default, one_epoch, by_fit, mse, combined, *others = (json.loads(line)
-                                                          for line in rows_file.read_text().splitlines())
+               "--variants", "default,epochs=1,select=fit,loss=mse,loss=mse+epochs=1,hidden=16,local=3,pretrain=20,"
+               "mu=0.01,default")
+    default, one_epoch, by_fit, mse, combined, *others, tuned, again = (
+        json.loads(line) for line in rows_file.read_text().splitlines())
     assert (default["variant"], one_epoch["variant"]) == ("default", "epochs=1")
     # the head trained again from the run's own initial weights: the run's PIPE and nearest to the digit
     assert default["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
@@ -49,12 +50,17 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     assert [row["variant"] for row in others] == ["hidden=16", "local=3", "pretrain=20"]
     assert all(row["test"]["pipe"] != pytest.approx(default["test"]["pipe"], abs=1e-6) for row in others)
     assert len(list((tmp_path / "fits").rglob("*.pt"))) == 2       # the two training parts, dsub9 and dsub15
+    # mu=L fine-tunes the encoder's last part: other codes, another result; the next variant gets the run's own
+    # encoder back
+    assert tuned["variant"] == "mu=0.01" and tuned["test"]["pipe"] != pytest.approx(default["test"]["pipe"], abs=1e-6)
+    assert again["test"] == pytest.approx(default["test"], abs=1e-9)
 
 
 @pytest.mark.parametrize("script, spec, message", [
     ("stage2_variants.py", "bogus", "unknown variant"), ("stage2_variants.py", "loss=mae", "unknown variant"),
     ("stage2_variants.py", "noise=0.3+select=loss", "unknown variant"), ("stage2_variants.py", "loss", "unknown"),
-    ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
+    ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant"),
+    ("part_cv.py", "mu=0.001", "unsupported variant")])
 def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(script, spec, message, tmp_path):
     done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), "no/such/run",
                            "--variants", f"default,{spec}"], cwd=ROOT / "experiments", capture_output=True,
@@ -164,3 +170,85 @@ def test_oracle_starts_table_counts_the_cases_already_at_the_best_objective(tmp_
     spread_one, spread_two = statistics.stdev([80.0, 86.0]), statistics.stdev([84.0, 86.0])
     assert (f"| dsub | force | 83.00 ± {spread_one:.2f} (50 %) | 85.00 ± {spread_two:.2f} (100 %) |"
             in printed)
+
+
+def test_parameter_codes_are_the_generators_parameters_standardised_over_the_training_parts():
+    import math
+
+    import torch
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from parameter_codes import parameter_codes, shape_parameters
+
+    from pipe.synthetic.catalogue import CATALOGUE
+
+    dowel6 = CATALOGUE["dowel6"]        # 6 mm, 24 mm long, inserted 12 mm, the standard's 0.15 d lead-in
+    assert shape_parameters(dowel6) == pytest.approx({
+        "log diameter": math.log(6.0), "log length": math.log(24.0), "log insertion depth": math.log(12.0),
+        "log lead-in": math.log(0.9), "taper": 0.0})
+    # dsub9 and dsub15 (training) differ in width, contacts and body width; vga in contacts and pitch from dsub9
+    parts = [CATALOGUE[name] for name in ("dsub9", "dsub15", "vga")]
+    geometry, physics = (parameter_codes(parts, 2, kind, 32) for kind in ("geometry", "physics"))
+    # over two training parts every varied parameter standardises to -1/sqrt(2) and +1/sqrt(2); what is the
+    # same on both (height, rows, pitch, detents, detent strength ...) is dropped, the rest of the code is 0;
+    # vga has dsub9's width
+    half = 1 / math.sqrt(2)
+    assert geometry.shape == (3, 32) and torch.allclose(geometry[:2, :3].abs(), torch.full((2, 3), half))
+    assert torch.equal(geometry[:, 3:], torch.zeros(3, 29))
+    assert torch.equal(physics, geometry)        # the catalogue's D-subs have one detent strength
+    widths = [math.log(p.width) for p in parts]
+    assert geometry[2, 0].item() == pytest.approx((widths[2] - (widths[0] + widths[1]) / 2)
+                                                  / (abs(widths[1] - widths[0]) / math.sqrt(2)), rel=1e-6)
+    assert geometry[2, 0].item() == pytest.approx(geometry[0, 0].item())
+
+
+def test_parameter_codes_physics_adds_the_detent_strength_no_mesh_shows():
+    import torch
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from parameter_codes import parameter_codes
+
+    from pipe.synthetic.families import family_parts
+
+    parts = list(family_parts("rect", 6).values())
+    geometry, physics = (parameter_codes(parts, 5, kind, 32) for kind in ("geometry", "physics"))
+    varied = int((geometry.abs().sum(0) > 0).sum())
+    assert torch.equal(physics[:, :varied], geometry[:, :varied])
+    strengths = torch.tensor([p.detent_strength for p in parts], dtype=torch.float64)
+    expected = (strengths - strengths[:5].mean()) / strengths[:5].std()
+    assert torch.allclose(physics[:, varied].double(), expected, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(trained_run, tmp_path):
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("parameter_codes.py", str(rows_file), str(trained_run.run_dir), "--codes", "codes,geometry")
+    codes, geometry = (json.loads(line) for line in rows_file.read_text().splitlines())
+    assert (codes["variant"], geometry["variant"]) == ("codes", "geometry")
+    assert codes["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
+    assert codes["test"]["nearest"] == pytest.approx(trained_run.results["nearest"].domain["fit_F"], abs=1e-9)
+    assert geometry["test"]["pipe"] != pytest.approx(codes["test"]["pipe"], abs=1e-6)
+
+
+def test_code_probe_scores_a_parameter_the_codes_hold_near_one_and_one_they_do_not_below_zero():
+    import numpy as np
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from code_probe import probe
+
+    rng = np.random.default_rng(0)
+    codes = rng.normal(size=(120, 8))
+    held = codes @ rng.normal(size=8) + 0.01 * rng.normal(size=120)     # a linear function of the codes
+    unrelated = rng.normal(size=120)
+    assert probe(codes[:100], codes[100:], held[:100], held[100:]) > 0.99
+    assert probe(codes[:100], codes[100:], unrelated[:100], unrelated[100:]) < 0.1
+    # R^2 is taken against the training parts' mean: codes that hold nothing predict that mean and score 0
+    flat = np.zeros((120, 8))
+    assert probe(flat[:100], flat[100:], unrelated[:100], unrelated[100:]) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_code_probe_table_gives_each_parameter_over_the_seeds(tmp_path):
+    rows = [{"run": f"runs/curve/rect/train_100/seed_{k}", "layer": "codes",
+             "r2": {"log width": 0.9 + 0.06 * k, "detents": -0.1}} for k in range(2)]
+    rows_file = tmp_path / "rows.jsonl"
+    rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    printed = run_script("code_probe.py", str(rows_file), "--table")
+    assert f"| rect/train_100 | codes | log width | 0.93 ± {statistics.stdev([0.9, 0.96]):.2f} | 2 |" in printed
+    assert "| rect/train_100 | codes | detents | -0.10 ± 0.00 | 2 |" in printed

@@ -1,0 +1,101 @@
+"""Issue 9, "why PIPE ties `nearest`": which of the part's parameters the encoder's codes hold.
+
+For each finished run (a seed of `train.py`), every parameter the generator built the parts' meshes from
+(`parameter_codes.shape_parameters`) and the plugs' hidden detent strength is predicted from the codes of the
+run's encoder by a linear probe (ridge regression, its penalty chosen by leave-one-out on the training
+parts, scikit-learn's RidgeCV), fitted on the training parts and scored on the test parts as R^2 (1: the
+codes hold the parameter linearly; 0: no better than the training parts' mean). A parameter constant over
+the training or the test parts is left out (R^2 needs a spread: read it on the learning curve's 20 test
+parts, not on a paper domain's 1 to 3). Rows (per run: each parameter's R^2 on the test parts) are printed and
+appended to OUT as JSON lines; `--table` gives each parameter's R^2 as mean ± std over the seeds. With
+`--layer features` the probe reads the encoder's pooled features (PointNet's 512 channels after the max pool,
+before the two small networks that map them to the code's mean and log-variance) instead of the codes. Usage:
+  python experiments/code_probe.py OUT.jsonl runs/curve_defaults/rect/train_100/seed_0 ... [--layer features]
+  python experiments/code_probe.py OUT.jsonl --table
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import append_row, load_encoder, load_run
+from parameter_codes import generator_parts, hidden_parameters, shape_parameters
+from sklearn.linear_model import RidgeCV
+from summarise import domain_of
+
+from pipe.data.batches import stack_clouds
+from pipe.data.prepared import data_scales
+from pipe.model.pipe_model import PIPEModel
+
+PENALTIES = np.logspace(-4, 3, 15)
+
+
+def probe(codes_train: np.ndarray, codes_test: np.ndarray, values_train: np.ndarray,
+          values_test: np.ndarray) -> float:
+    """R^2 on the test parts of a ridge regression from the codes to one parameter, fitted on the training
+    parts (codes and parameter standardised over them; the penalty by leave-one-out)."""
+    mean, std = codes_train.mean(0), codes_train.std(0) + 1e-12
+    model = RidgeCV(alphas=PENALTIES).fit((codes_train - mean) / std, values_train)
+    predicted = model.predict((codes_test - mean) / std)
+    return float(1.0 - ((values_test - predicted) ** 2).sum() / ((values_test - values_train.mean()) ** 2).sum())
+
+
+def run_row(run_dir: Path, layer: str) -> dict:
+    """Each parameter's R^2 on the run's test parts, from its encoder's codes or pooled features (`layer`)."""
+    cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+    load_encoder(encoder, run_dir)
+    train, test = data.splits["train"], data.splits["test"]
+    model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+    clouds = stack_clouds(train + test)
+    with torch.no_grad():
+        read = (model.latent_distribution(clouds)[0] if layer == "codes"
+                else encoder.eval().features(clouds / encoder.input_scale))
+    codes = read.double().numpy()
+    generator = generator_parts(cfg)
+    rows = [shape_parameters(generator[p.name]) | hidden_parameters(generator[p.name]) for p in train + test]
+    r2 = {}
+    for name in rows[0]:
+        values = np.array([row[name] for row in rows])
+        if values[: len(train)].std() > 1e-9 and values[len(train):].std() > 1e-9:
+            r2[name] = probe(codes[: len(train)], codes[len(train):], values[: len(train)], values[len(train):])
+    return {"run": str(run_dir), "layer": layer, "r2": r2}
+
+
+def table(rows: list[dict]) -> str:
+    """Per domain: each parameter's R^2 on the test parts, mean ± std over the seeds."""
+    by_domain: dict[tuple[str, str], dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for row in rows:
+        for name, value in row["r2"].items():
+            by_domain[(domain_of(row["run"]), row["layer"])][name].append(value)
+    lines = ["| domain | layer | parameter | R^2 on the test parts | seeds |", "| --- | --- | --- | --- | --- |"]
+    for (domain, layer), parameters in by_domain.items():
+        for name, values in parameters.items():
+            spread = statistics.stdev(values) if len(values) > 1 else 0.0
+            lines.append(f"| {domain} | {layer} | {name} | {statistics.mean(values):.2f} ± {spread:.2f} | "
+                         f"{len(values)} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", help="JSON lines file the rows are appended to (read with --table)")
+    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
+    ap.add_argument("--layer", choices=("codes", "features"), default="codes", help="what the probe reads")
+    ap.add_argument("--table", action="store_true", help="summarise OUT's rows instead of running")
+    args = ap.parse_args()
+    if args.table:
+        print(table([json.loads(line) for line in Path(args.out).read_text().splitlines() if line.strip()]))
+        return
+    for run in args.runs:
+        append_row(args.out, run_row(Path(run), args.layer))
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    main()
