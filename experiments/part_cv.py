@@ -26,6 +26,7 @@ from collections import defaultdict
 from dataclasses import replace
 from pathlib import Path
 
+import torch
 from common import append_row, load_encoder, load_run, pipe_fit
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
 from stage2_variants import parse_variant, variant_config, variant_head, variant_stage
@@ -71,9 +72,9 @@ def main() -> None:
         return
     variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]
     for spec, variant in variants:     # before any run: what a fold without validation parts cannot do
-        if variant.keys() & {"select", "std", "last", "encoder", "mu"}:
+        if variant.keys() & {"select", "std", "last"}:
             raise SystemExit(f"unsupported variant {spec!r}: a fold has no validation parts to select on, and "
-                             "std, last, encoder and mu are not supported here")
+                             "std and last are not supported here")
     for run in args.runs:
         run_dir = Path(run)
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
@@ -82,7 +83,8 @@ def main() -> None:
         pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
         index = {p.name: i for i, p in enumerate(pool + test)}
         unscaled = PIPEModel(encoder, head, dynamics)
-        latents, logvars = unscaled.latent_distribution(stack_clouds(pool + test))
+        clouds = stack_clouds(pool + test)
+        latents, logvars = unscaled.latent_distribution(clouds)
         targets = (profile_targets(cfg, unscaled, latents, index, pool, args.fits)
                    if any("pretrain" in variant for _, variant in variants) else None)
         for held_out in pool:
@@ -93,6 +95,7 @@ def main() -> None:
             spread = latents[[index[p.name] for p in train]].std(0)
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
             for spec, variant in variants:
+                load_encoder(encoder, run_dir)      # the run's own again after a fold that fine-tuned it
                 trained, initial = heads[spec]
                 trained.load_state_dict(initial)
                 model = PIPEModel(encoder, trained, dynamics, *scales)
@@ -100,13 +103,15 @@ def main() -> None:
                     pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
                 run_cfg = variant_config(cfg, variant)
                 fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
-                                                     lambda: math.nan, {})
+                                                     lambda: math.nan, {}, clouds)
                 start = time.perf_counter()
                 with tempfile.TemporaryDirectory() as tmp:
                     fit_module.fit_head(run_cfg, model, latents, index, train, [], Path(tmp), False, [])
+                with torch.no_grad():
+                    codes = model.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else latents
                 row = {"run": str(run_dir), "variant": spec, "held_out": held_out.name,
                        "seconds": time.perf_counter() - start,
-                       "fit": pipe_fit(cfg, fold, model, latents, index, "test")}
+                       "fit": pipe_fit(cfg, fold, model, codes, index, "test")}
                 append_row(args.out, row)
 
 
