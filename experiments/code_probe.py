@@ -39,7 +39,7 @@ PENALTIES = np.logspace(-4, 3, 15)
 def probe(codes_train: np.ndarray, codes_test: np.ndarray, values_train: np.ndarray,
           values_test: np.ndarray) -> float:
     """R^2 on the test parts of a ridge regression from the codes to one parameter, fitted on the training
-    parts (codes and parameter standardised over them; the penalty by leave-one-out)."""
+    parts (the codes standardised over them; the penalty by leave-one-out)."""
     mean, std = codes_train.mean(0), codes_train.std(0) + 1e-12
     model = RidgeCV(alphas=PENALTIES).fit((codes_train - mean) / std, values_train)
     predicted = model.predict((codes_test - mean) / std)

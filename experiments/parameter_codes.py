@@ -76,9 +76,9 @@ def parameter_codes(parts: list[Plug | Pin], train_count: int, kind: str, width:
     rows = [{name: value for name, value in (shape_parameters(p) | (hidden_parameters(p) if kind == "physics"
                                                                       else {})).items() if name not in without}
             for p in parts]
-    values = torch.tensor([list(row.values()) for row in rows], dtype=torch.float64)
     if any(list(row) != list(rows[0]) for row in rows):
         raise SystemExit("the parts are of different kinds (plugs and pins): their parameters do not line up")
+    values = torch.tensor([list(row.values()) for row in rows], dtype=torch.float64)
     mean, std = values[:train_count].mean(0), values[:train_count].std(0)
     varied = std > 1e-9
     standardised = ((values - mean) / std)[:, varied]

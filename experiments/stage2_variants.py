@@ -80,7 +80,7 @@ class Standardised(torch.nn.Module):
 
 def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
                   steps_per_epoch: int, val_fit: Callable[[], float], kept: dict,
-                  clouds: torch.Tensor | None = None) -> type[HeadStage]:
+                  clouds: torch.Tensor) -> type[HeadStage]:
     """HeadStage with the variant's training codes, optimiser and callbacks (`variant`: each kind's value, 0
     where it takes none); `select=fit` keeps in `kept` the head's state of the epoch where `val_fit` was
     highest; `encoder=L` encodes the parts' `clouds` (in the order of the codes) at every step, `mu=L` maps
@@ -161,6 +161,10 @@ def parse_variant(spec: str) -> dict[str, float | str]:
             raise SystemExit(f"unknown variant {part!r} in {spec!r}: see the kinds in this script's docstring")
         if kind != "default":
             variant[kind] = value if kind in WORDS else float(value) if value else 0.0
+    exclusive = {"encoder", "mu", "select", "wd", "cosine", "std"} & variant.keys()
+    if {"encoder", "mu"} & exclusive and len(exclusive) > 1:
+        raise SystemExit(f"unknown variant {spec!r}: encoder= and mu= combine with neither each other nor select, wd, "
+                         "cosine or std (their optimiser and codes are their own)")
     return variant
 
 

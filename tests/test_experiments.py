@@ -59,6 +59,7 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
 @pytest.mark.parametrize("script, spec, message", [
     ("stage2_variants.py", "bogus", "unknown variant"), ("stage2_variants.py", "loss=mae", "unknown variant"),
     ("stage2_variants.py", "noise=0.3+select=loss", "unknown variant"), ("stage2_variants.py", "loss", "unknown"),
+    ("stage2_variants.py", "mu=0.001+select=fit", "combine with neither"),
     ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
 def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(script, spec, message, tmp_path):
     done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), "no/such/run",
