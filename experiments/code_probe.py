@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 from collections import defaultdict
 from pathlib import Path
 
@@ -27,7 +26,7 @@ import torch
 from common import append_row, load_encoder, load_run
 from parameter_codes import generator_parts, hidden_parameters, shape_parameters
 from sklearn.linear_model import RidgeCV
-from summarise import domain_of
+from summarise import domain_of, spread
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
@@ -76,9 +75,7 @@ def table(rows: list[dict]) -> str:
     lines = ["| domain | layer | parameter | R^2 on the test parts | seeds |", "| --- | --- | --- | --- | --- |"]
     for (domain, layer), parameters in by_domain.items():
         for name, values in parameters.items():
-            spread = statistics.stdev(values) if len(values) > 1 else 0.0
-            lines.append(f"| {domain} | {layer} | {name} | {statistics.mean(values):.2f} ± {spread:.2f} | "
-                         f"{len(values)} |")
+            lines.append(f"| {domain} | {layer} | {name} | {spread(values)} | {len(values)} |")
     return "\n".join(lines)
 
 
