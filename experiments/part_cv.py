@@ -16,6 +16,7 @@ Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import os
@@ -79,6 +80,7 @@ def main() -> None:
         run_dir = Path(run)
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
         load_encoder(encoder, run_dir)
+        own_encoder = copy.deepcopy(encoder.state_dict())
         heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
         pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
         index = {p.name: i for i, p in enumerate(pool + test)}
@@ -95,7 +97,7 @@ def main() -> None:
             spread = latents[[index[p.name] for p in train]].std(0)
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
             for spec, variant in variants:
-                load_encoder(encoder, run_dir)      # the run's own again after a fold that fine-tuned it
+                encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
                 trained, initial = heads[spec]
                 trained.load_state_dict(initial)
                 model = PIPEModel(encoder, trained, dynamics, *scales)

@@ -206,6 +206,7 @@ def main() -> None:
         run_dir = Path(run)
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
         load_encoder(encoder, run_dir)
+        own_encoder = copy.deepcopy(encoder.state_dict())
         heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         model = PIPEModel(encoder, head, dynamics, *data_scales(train))
@@ -216,7 +217,7 @@ def main() -> None:
         targets = (profile_targets(cfg, model, latents, index, train, args.fits)
                    if any("pretrain" in variant for _, variant in variants) else None)
         for spec, variant in variants:
-            load_encoder(encoder, run_dir)      # the run's own again after a variant that fine-tuned it
+            encoder.load_state_dict(own_encoder)     # the run's own again after a variant that fine-tuned it
             trained, initial = heads[spec]
             trained.load_state_dict(initial)
             base = model.with_head(trained)

@@ -21,6 +21,13 @@ def run_script(*args: str) -> str:
     return done.stdout
 
 
+def printed_table(script: str, rows: list[dict], tmp_path, *args: str) -> str:
+    """What `script` prints for `rows` written to a JSON lines file (its --table, or summarise.py's output)."""
+    rows_file = tmp_path / "rows.jsonl"
+    rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    return run_script(script, str(rows_file), *args)
+
+
 @pytest.mark.slow
 def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
@@ -99,9 +106,7 @@ def test_summarise_tables_each_domain_and_variant_over_the_seeds(tmp_path):
              "val": {"pipe": 70.0 + k}, "test": {"pipe": 60.0 + 2 * k, "nearest": 55.0 + k}} for k in range(3)]
     rows.append({"run": "runs/conn/seed_0", "variant": "noise=0.3", "train": {"pipe": 90.0}, "val": {"pipe": 75.0},
                  "test": {"pipe": 68.0, "nearest": 70.0}})
-    rows_file = tmp_path / "rows.jsonl"
-    rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
-    printed = run_script("summarise.py", str(rows_file))
+    printed = printed_table("summarise.py", rows, tmp_path)
     pins = statistics.stdev([60.0, 62.0, 64.0])            # 2.00; val's spread 1.00, PIPE - nearest 1, 2, 3
     assert f"| default | 3 | 71.00 ± 1.00 | 62.00 ± {pins:.2f} | 56.00 ± 1.00 | 6.00 ± 1.00 |" in printed
     assert "pins/train_20" in printed and "\nconn\n" in printed
@@ -128,9 +133,7 @@ def test_part_cv_table_averages_the_held_out_parts_per_seed(tmp_path):
             ("runs/pins/seed_1", "a"): (30.0, 90.0), ("runs/pins/seed_1", "b"): (80.0, 10.0)}
     rows = [{"run": run, "variant": variant, "held_out": part, "fit": fit}
             for (run, part), pair in fits.items() for variant, fit in zip(("default", "loss=nmse"), pair)]
-    rows_file = tmp_path / "rows.jsonl"
-    rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
-    printed = run_script("part_cv.py", str(rows_file), "--table")
+    printed = printed_table("part_cv.py", rows, tmp_path, "--table")
     # default: seed means 60 and 55, median of 50, 70, 30, 80 = 60; nmse: seed means 50 and 50, median 50,
     # above default in 2 of the 4 held-out cases (60 > 50, 90 > 30)
     assert f"| pins | default | 2 | 57.50 ± {statistics.stdev([60.0, 55.0]):.2f} | 60.00 |  |" in printed
@@ -163,9 +166,7 @@ def test_oracle_starts_table_counts_the_cases_already_at_the_best_objective(tmp_
     rows = [{"run": run, "target": "force", "starts": k, "fit_F": fits[(run, k)],
              "parts": {"dsub26": {"objective": objective, "fit_F": fits[(run, k)]}}}
             for (run, k), objective in objectives.items()]
-    rows_file = tmp_path / "rows.jsonl"
-    rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
-    printed = run_script("oracle_starts.py", str(rows_file), "--table")
+    printed = printed_table("oracle_starts.py", rows, tmp_path, "--table")
     # one start: seeds at 80 and 86, only seed 1 already at its best objective; two: 84 and 86, both
     spread_one, spread_two = statistics.stdev([80.0, 86.0]), statistics.stdev([84.0, 86.0])
     assert (f"| dsub | force | 83.00 ± {spread_one:.2f} (50 %) | 85.00 ± {spread_two:.2f} (100 %) |"
@@ -247,9 +248,7 @@ def test_code_probe_scores_a_parameter_the_codes_hold_near_one_and_one_they_do_n
 def test_code_probe_table_gives_each_parameter_over_the_seeds(tmp_path):
     rows = [{"run": f"runs/curve/rect/train_100/seed_{k}", "layer": "codes",
              "r2": {"log width": 0.9 + 0.06 * k, "detents": -0.1}} for k in range(2)]
-    rows_file = tmp_path / "rows.jsonl"
-    rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
-    printed = run_script("code_probe.py", str(rows_file), "--table")
+    printed = printed_table("code_probe.py", rows, tmp_path, "--table")
     assert f"| rect/train_100 | codes | log width | 0.93 ± {statistics.stdev([0.9, 0.96]):.2f} | 2 |" in printed
     assert "| rect/train_100 | codes | detents | -0.10 ± 0.00 | 2 |" in printed
 
