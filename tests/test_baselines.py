@@ -68,7 +68,6 @@ def fit_of(measured: np.ndarray, predicted: np.ndarray) -> float:
     return 100 * (1 - np.sum((measured - predicted) ** 2) / np.sum((measured - measured.mean()) ** 2))
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("ridge, engine", [(0.0, "torch"), (0.1, "torch"), (0.0, "compiled"), (0.1, "compiled")])
 def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge, engine):
     """On noise-free data simulated by the model itself (parameters away from the neutral profile): FIT(F)
@@ -97,7 +96,6 @@ def test_oracle_recovers_the_simulating_parameters_from_scratch(ctx, ridge, engi
     assert float(a0[-1] / a2[-1]) == pytest.approx(1e-3, rel=0.15)     # s^2
 
 
-@pytest.mark.slow
 def test_oracle_clean_fits_the_noise_free_force_and_is_scored_against_it(ctx):
     context, _ = ctx
     noisy = part("n", 2.0, noise=1.0)
@@ -298,7 +296,6 @@ def test_nearest_uses_the_closest_training_part(ctx):
     np.testing.assert_allclose(got, expected, rtol=1e-6)
 
 
-@pytest.mark.slow
 def test_gpr_reproduces_a_training_part_at_its_own_latent(ctx):
     context, _ = ctx
     gpr = METHODS["gpr"]()
@@ -429,8 +426,7 @@ def test_reconstruction_metrics_of_a_perfect_and_a_shifted_reconstruction():
     assert shifted["nn_distance_unit_sphere"] == pytest.approx(3 / math.sqrt(500.0))
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("engine", ["torch", "compiled"])
+@pytest.mark.parametrize("engine", [pytest.param("torch", marks=pytest.mark.slow), "compiled"])
 def test_default_settings_let_a_slow_pin_fit_converge(tmp_path, engine):
     """Regression: under the former cap of 3000 evaluations the second start of seed 1 on the pin dowel6 (the
     oracle's kept start there) stopped unconverged on the torch engine; it meets the stopping rule after
