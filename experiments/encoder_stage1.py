@@ -8,7 +8,7 @@ that has neither the dataset nor open3d (a lent GPU's).
       train.py's order, the encoder group replaced by conf/encoder/<name>.yaml, and on a CUDA GPU trainer=gpu's
       accelerator and bfloat16 features. OUT gets checkpoints/vae/best.ckpt and config.yaml (the run's with the
       new encoder), so that code_probe.py and parameter_codes.py read OUT as a run folder (they read only those
-      two, and the dataset here).
+      two, and the dataset here). `--latent-dim N` sets the new encoder's code size (its config's by default).
 """
 from __future__ import annotations
 
@@ -43,10 +43,13 @@ def parts(clouds: np.ndarray) -> list:
     return [PartData(f"part_{k}", PointCloud(cloud, np.zeros(3), "volume"), [], []) for k, cloud in enumerate(clouds)]
 
 
-def train(run_dir: Path, clouds_file: Path, out: Path, encoder_name: str, epochs: int | None) -> None:
+def train(run_dir: Path, clouds_file: Path, out: Path, encoder_name: str, epochs: int | None,
+          latent_dim: int | None) -> None:
     cfg = OmegaConf.load(run_dir / "config.yaml")
     with open_dict(cfg):
         cfg.encoder = OmegaConf.load(ROOT / "conf" / "encoder" / f"{encoder_name}.yaml")
+        if latent_dim is not None:
+            cfg.encoder.latent_dim = latent_dim
         cfg.trainer.progress_bar = False
         if epochs is not None:
             cfg.stages.vae.epochs = epochs
@@ -72,13 +75,14 @@ def main() -> None:
     ap.add_argument("out", nargs="?", help="train: the new run folder")
     ap.add_argument("--encoder", default="dgcnn", help="train: a file of conf/encoder/, without .yaml")
     ap.add_argument("--epochs", type=int, help="train: stage 1's epochs, if not the run's")
+    ap.add_argument("--latent-dim", type=int, help="train: the code's size, if not the encoder config's")
     args = ap.parse_args()
     if args.action == "export":
         export(Path(args.run), Path(args.clouds))
     elif args.out is None:
         raise SystemExit("train needs an output folder")
     else:
-        train(Path(args.run), Path(args.clouds), Path(args.out), args.encoder, args.epochs)
+        train(Path(args.run), Path(args.clouds), Path(args.out), args.encoder, args.epochs, args.latent_dim)
 
 
 if __name__ == "__main__":

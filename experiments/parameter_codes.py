@@ -6,6 +6,10 @@ from the run's own initial weights, as `stage2_variants.py`'s `default`, once pe
   geometry  the parameters the generator drew the part's shape from (synthetic/catalogue.py, families.py):
             sizes, pitches, contact rows, detent count, chamfer, taper; standardised over the training parts
   physics   geometry plus what shapes no mesh: a plug's detent strength (a pin has nothing hidden)
+  features  the encoder's pooled features one step before the code (PointNet's 512 channels after the max
+            pool), reduced to the code's size by a principal component analysis of the training parts' and
+            each component standardised over them: a code that keeps what the pooled features hold (taper,
+            lead-in, contacts: code_probe.py --layer features), from the same trained encoder
 Each is padded with zeros to the latent size, so the head is the run's own and `nearest` reads the training
 part nearest in that space. A head on `geometry` shows how far a perfect geometry encoder would take PIPE;
 `physics` minus `geometry` is what no geometry can give; `--without detents` leaves parameters out of both
@@ -37,7 +41,7 @@ from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.families import family_parts
 from pipe.training.fit import fit_head
 
-KINDS = ("codes", "geometry", "physics")
+KINDS = ("codes", "geometry", "physics", "features")
 
 
 def shape_parameters(part: Plug | Pin) -> dict[str, float]:
@@ -89,6 +93,21 @@ def parameter_codes(parts: list[Plug | Pin], train_count: int, kind: str, width:
     return codes
 
 
+def principal_codes(features: torch.Tensor, train_count: int, width: int) -> torch.Tensor:
+    """`features` (parts, channels) as their first `width` principal components over the first `train_count`
+    parts (the training parts), each standardised over them; components the training parts do not span
+    are zeros."""
+    train = features[:train_count].double()
+    mean = train.mean(0)
+    _, singular, directions = torch.linalg.svd(train - mean, full_matrices=False)
+    kept = singular > singular[0] * 1e-6
+    directions, singular = directions[kept][:width], singular[kept][:width]
+    std = singular / math.sqrt(train_count - 1)      # each component's standard deviation over the training parts
+    codes = torch.zeros(len(features), width)
+    codes[:, : len(std)] = (((features.double() - mean) @ directions.T) / std).float()
+    return codes
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
@@ -118,6 +137,10 @@ def main() -> None:
             head.load_state_dict(initial)
             if kind == "codes":
                 latents = model.latent_distribution(stack_clouds(ordered))[0]
+            elif kind == "features":
+                with torch.no_grad():
+                    pooled = encoder.eval().features(stack_clouds(ordered) / encoder.input_scale)
+                latents = principal_codes(pooled, len(train), head.latent_dim)
             else:
                 latents = parameter_codes([generator[p.name] for p in ordered], len(train), kind, head.latent_dim,
                                           without)

@@ -4,6 +4,7 @@ row differs from the run's own result by the variant alone, and their summary co
 from __future__ import annotations
 
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -174,8 +175,6 @@ def test_oracle_starts_table_counts_the_cases_already_at_the_best_objective(tmp_
 
 
 def test_parameter_codes_are_the_generators_parameters_standardised_over_the_training_parts():
-    import math
-
     import torch
     sys.path.insert(0, str(ROOT / "experiments"))
     from parameter_codes import parameter_codes, shape_parameters
@@ -218,12 +217,33 @@ def test_parameter_codes_physics_adds_the_detent_strength_no_mesh_shows():
     assert torch.allclose(physics[:, varied].double(), expected, atol=1e-6)
 
 
+def test_principal_codes_are_the_training_parts_whitened_principal_components():
+    """Against scikit-learn's PCA with whitening (each component over its standard deviation, n - 1), up to
+    each component's sign; with fewer training parts than the width, the components they do not span are 0."""
+    import numpy as np
+    import torch
+    from sklearn.decomposition import PCA
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from parameter_codes import principal_codes
+
+    features = torch.randn(30, 12, generator=torch.Generator().manual_seed(0)) * torch.linspace(5.0, 0.1, 12)
+    codes = principal_codes(features, 20, 8).double().numpy()
+    reference = PCA(n_components=8, whiten=True).fit(features[:20].numpy()).transform(features.numpy())
+    signs = np.sign((codes[:, :8] * reference).sum(0))
+    np.testing.assert_allclose(codes[:, :8] * signs, reference, atol=1e-4)
+    np.testing.assert_allclose(codes[:20].std(0, ddof=1), 1.0, atol=1e-5)
+
+    few = principal_codes(features, 4, 8)      # 4 training parts span 3 directions about their mean
+    assert torch.count_nonzero(few[:, 3:]) == 0 and torch.all(few[:4, :3].std(0) > 0.5)
+
+
 @pytest.mark.slow
 def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
-    run_script("parameter_codes.py", str(rows_file), str(trained_run.run_dir), "--codes", "codes,geometry")
-    codes, geometry = (json.loads(line) for line in rows_file.read_text().splitlines())
-    assert (codes["variant"], geometry["variant"]) == ("codes", "geometry")
+    run_script("parameter_codes.py", str(rows_file), str(trained_run.run_dir), "--codes", "codes,geometry,features")
+    codes, geometry, features = (json.loads(line) for line in rows_file.read_text().splitlines())
+    assert (codes["variant"], geometry["variant"], features["variant"]) == ("codes", "geometry", "features")
+    assert math.isfinite(features["test"]["pipe"]) and features["test"]["pipe"] != codes["test"]["pipe"]
     assert codes["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
     assert codes["test"]["nearest"] == pytest.approx(trained_run.results["nearest"].domain["fit_F"], abs=1e-9)
     assert geometry["test"]["pipe"] != pytest.approx(codes["test"]["pipe"], abs=1e-6)
@@ -263,13 +283,14 @@ def test_encoder_stage1_trains_another_encoder_on_exported_clouds_into_a_run_fol
     exported = np.load(clouds)
     assert exported["train"].shape[0] == 2 and exported["val"].shape[0] == 1     # dsub9, dsub15; vga
     run_script("encoder_stage1.py", "train", str(trained_run.run_dir), str(clouds), str(out), "--encoder", "dgcnn",
-               "--epochs", "1")
+               "--epochs", "1", "--latent-dim", "16")
     cfg = OmegaConf.load(out / "config.yaml")
-    assert cfg.encoder._target_.endswith("DGCNNVAE") and cfg.stages.vae.epochs == 1
+    assert cfg.encoder._target_.endswith("DGCNNVAE") and cfg.stages.vae.epochs == 1 and cfg.encoder.latent_dim == 16
     # the other scripts read the folder as a run: its config builds a DGCNN that takes the stage-1 weights
     sys.path.insert(0, str(ROOT / "experiments"))
     from common import load_encoder
 
     from pipe.pipeline import build_components
-    encoder = build_components(cfg)[0]
+    encoder, head, _ = build_components(cfg)
     load_encoder(encoder, out)
+    assert encoder.latent_dim == head.latent_dim == 16
