@@ -34,7 +34,7 @@ def main() -> None:
 
     torch.set_num_threads(1)
     setup = identification_setup(args.domain)
-    train, test, ctx, settings = setup["train"], setup["test"], setup["ctx"], setup["settings"]
+    train, test, ctx, settings = setup.train, setup.test, setup.ctx, setup.settings
     totals = {engine: [0, 0.0] for engine in ("torch", "compiled")}
     warm_up = [Profile(p.time, p.depth, p.force) for p in test[0].profiles]
     for engine in totals:    # loads numba's cached kernels and scipy, not timed

@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 
-def identification_setup(domain: str) -> dict[str, Any]:
+@dataclass
+class IdentificationSetup:
+    """What an identification benchmark needs: the parts, a context, the settings and the dynamic model."""
+
+    train: list
+    test: list
+    ctx: Any
+    settings: Any
+    dynamics: Any
+
+
+def identification_setup(domain: str) -> IdentificationSetup:
     """The domain's training and test parts (train.py's defaults), an evaluation context with an untrained
     model (identification uses only its head's profile structure and its dynamic model), the configured
     identification settings and the dynamic model, on the compiled simulator."""
@@ -27,5 +39,5 @@ def identification_setup(domain: str) -> dict[str, Any]:
     ctx = EvalContext(PIPEModel(encoder, head, dynamics, *data_scales(train)), torch.zeros(1, encoder.latent_dim),
                       {}, train, 1.0 / cfg.data.rate_hz, 0, dict(cfg.evaluation))
     ltv.set_backend("compiled")
-    return {"train": train, "test": test, "ctx": ctx, "dynamics": dynamics,
-            "settings": IdentificationSettings.from_config(cfg.evaluation.identification)}
+    return IdentificationSetup(train, test, ctx, IdentificationSettings.from_config(cfg.evaluation.identification),
+                               dynamics)

@@ -48,7 +48,7 @@ def main() -> None:
     from pipe.model.losses import masked_mse
 
     setup = identification_setup("conn")
-    test, ctx, settings, dynamics = setup["test"], setup["ctx"], setup["settings"], setup["dynamics"]
+    test, ctx, settings, dynamics = setup.test, setup.ctx, setup.settings, setup.dynamics
     jobs = [(part, [Profile(p.time, p.depth, p.force) for p in part.profiles]) for part in test]
     part, trials = jobs[0]
     batch = collate_trials([(0, p) for p in trials])
