@@ -7,9 +7,9 @@ from the run's own initial weights, as `stage2_variants.py`'s `default`, once pe
             sizes, pitches, contact rows, detent count, chamfer, taper; standardised over the training parts
   physics   geometry plus what shapes no mesh: a plug's detent strength (a pin has nothing hidden)
   features  the encoder's pooled features one step before the code (PointNet's 512 channels after the max
-            pool), reduced to the code's size by a principal component analysis of the training parts' and
-            each component standardised over them: a code that keeps what the pooled features hold (taper,
-            lead-in, contacts: code_probe.py --layer features), from the same trained encoder
+            pool), reduced to the code's size by a principal component analysis over the training parts, each
+            component standardised over them: a code that keeps what the pooled features hold (taper, lead-in,
+            contacts: code_probe.py --layer features), from the same trained encoder
 Each is padded with zeros to the latent size, so the head is the run's own and `nearest` reads the training
 part nearest in that space. A head on `geometry` shows how far a perfect geometry encoder would take PIPE;
 `physics` minus `geometry` is what no geometry can give; `--without detents` leaves parameters out of both
