@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import append_row, load_encoder, load_run
+from common import append_row, load_encoder, load_run, pooled_features
 from parameter_codes import generator_parts, hidden_parameters, shape_parameters
 from sklearn.linear_model import RidgeCV
 from summarise import domain_of, spread
@@ -53,8 +53,7 @@ def run_row(run_dir: Path, layer: str) -> dict:
     model = PIPEModel(encoder, head, dynamics, *data_scales(train))
     clouds = stack_clouds(train + test)
     with torch.no_grad():
-        read = (model.latent_distribution(clouds)[0] if layer == "codes"
-                else encoder.eval().features(clouds / encoder.input_scale))
+        read = model.latent_distribution(clouds)[0] if layer == "codes" else pooled_features(encoder, clouds)
     codes = read.double().numpy()
     generator = generator_parts(cfg)
     rows = [shape_parameters(generator[p.name]) | hidden_parameters(generator[p.name]) for p in train + test]

@@ -50,6 +50,13 @@ def load_encoder(encoder: torch.nn.Module, run_dir: Path) -> None:
     encoder.load_state_dict({k.removeprefix("encoder."): v for k, v in state.items()})
 
 
+def pooled_features(encoder: torch.nn.Module, clouds: torch.Tensor) -> torch.Tensor:
+    """The encoder's pooled features of `clouds` (in mm), one step before the code (PointNet's 512 channels
+    after the max pool), in eval mode and without gradients."""
+    with torch.no_grad():
+        return encoder.eval().features(clouds / encoder.input_scale)
+
+
 def load_head_stage(model: torch.nn.Module, checkpoint: Path) -> None:
     """A stage-2 checkpoint's weights (its LightningModule's `model.` entries) into a PIPEModel."""
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)["state_dict"]

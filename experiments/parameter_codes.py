@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 import torch
-from common import load_encoder, load_run, score
+from common import load_encoder, load_run, pooled_features, score
 from omegaconf import DictConfig, OmegaConf
 
 from pipe.data.batches import stack_clouds
@@ -126,6 +126,7 @@ def main() -> None:
         initial = copy.deepcopy(head.state_dict())
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         ordered = train + val + test
+        clouds = stack_clouds(ordered)
         index = {p.name: i for i, p in enumerate(ordered)}
         model = PIPEModel(encoder, head, dynamics, *data_scales(train))
         generator = generator_parts(cfg)
@@ -136,11 +137,9 @@ def main() -> None:
         for kind in kinds:
             head.load_state_dict(initial)
             if kind == "codes":
-                latents = model.latent_distribution(stack_clouds(ordered))[0]
+                latents = model.latent_distribution(clouds)[0]
             elif kind == "features":
-                with torch.no_grad():
-                    pooled = encoder.eval().features(stack_clouds(ordered) / encoder.input_scale)
-                latents = principal_codes(pooled, len(train), head.latent_dim)
+                latents = principal_codes(pooled_features(encoder, clouds), len(train), head.latent_dim)
             else:
                 latents = parameter_codes([generator[p.name] for p in ordered], len(train), kind, head.latent_dim,
                                           without)

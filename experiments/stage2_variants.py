@@ -49,7 +49,7 @@ from pathlib import Path
 
 import lightning as L
 import torch
-from common import load_encoder, load_head_stage, load_run, pipe_fit, score
+from common import load_encoder, load_head_stage, load_run, pipe_fit, pooled_features, score
 from lightning.pytorch.callbacks import EMAWeightAveraging
 from omegaconf import DictConfig
 from profile_pretraining import FITS, pretrain_head, profile_targets
@@ -93,8 +93,7 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
             if tuned:
                 self.tuned_part().requires_grad_(True)
                 if tuned == "mu":
-                    with torch.no_grad():
-                        self.features = self.model.encoder.eval().features(clouds / self.model.encoder.input_scale)
+                    self.features = pooled_features(self.model.encoder, clouds)
 
         def tuned_part(self) -> torch.nn.Module:
             return self.model.encoder if tuned == "encoder" else self.model.encoder.to_mu
