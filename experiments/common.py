@@ -47,7 +47,7 @@ def oracle_context(run_dir: Path) -> tuple[DictConfig, list, EvalContext]:
 def load_encoder(encoder: torch.nn.Module, run_dir: Path) -> None:
     """The run's best stage-1 weights."""
     state = torch.load(run_dir / "checkpoints/vae/best.ckpt", map_location="cpu", weights_only=True)["state_dict"]
-    encoder.load_state_dict({k.removeprefix("encoder."): v for k, v in state.items()})
+    encoder.load_state_dict({k.removeprefix("encoder."): v for k, v in state.items() if k.startswith("encoder.")})
 
 
 def pooled_features(encoder: torch.nn.Module, clouds: torch.Tensor) -> torch.Tensor:

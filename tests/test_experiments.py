@@ -294,3 +294,47 @@ def test_encoder_stage1_trains_another_encoder_on_exported_clouds_into_a_run_fol
     encoder, head, _ = build_components(cfg)
     load_encoder(encoder, out)
     assert encoder.latent_dim == head.latent_dim == 16
+
+
+def test_force_signature_averages_the_trials_force_in_bins_of_depth_and_fills_empty_bins():
+    import numpy as np
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from force_code import force_signature
+
+    from pipe.data.prepared import PartData
+    from pipe.data.preprocess import Profile
+
+    def part(*trials):
+        return PartData("p", None, [Profile(np.arange(len(d)) * 0.01, np.array(d, float), np.array(f, float))
+                                    for d, f in trials], [])
+
+    # deepest |depth| 10 mm in both trials; fractions 0 .2 .4 | .6 .8 1 and 0 | .5 1 (the deepest in the last
+    # bin, the depth's sign ignored): bin 0 holds 0 1 2 1, bin 1 holds 3 4 5 1 7
+    two = part(([0, 2, 4, 6, 8, 10], [0, 1, 2, 3, 4, 5]), ([0, -5, -10], [1, 1, 7]))
+    np.testing.assert_allclose(force_signature(two, 2), [1.0, 4.0])
+    # samples at 0 and 10 mm only: bins 1 and 2 of 4 take the line between the centres of bins 0 and 3
+    np.testing.assert_allclose(force_signature(part(([0, 10], [2, 8])), 4), [2.0, 4.0, 6.0, 8.0])
+
+
+@pytest.mark.slow
+def test_force_code_without_the_term_is_train_pys_run_and_with_it_another_encoder(trained_run, tiny_data, tmp_path):
+    from conftest import TINY_DOMAIN
+
+    rows_file = tmp_path / "rows.jsonl"
+    overrides = ["experiment=smoke", f"data.dir={tiny_data}", *TINY_DOMAIN]
+    for target, weight in (("force", "0"), ("force", "100"), ("profile", "100")):
+        run_script("force_code.py", "--weight", weight, "--target", target, "--fits", str(tmp_path / "fits"),
+                   str(rows_file), str(tmp_path / f"{target}{weight}"), *overrides)
+    plain, shaped, profiled = (json.loads(line) for line in rows_file.read_text().splitlines())
+    assert [row["variant"] for row in (plain, shaped, profiled)] == ["force=0", "force=100", "profile=100"]
+    assert plain["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
+    assert plain["test"]["nearest"] == pytest.approx(trained_run.results["nearest"].domain["fit_F"], abs=1e-9)
+    assert shaped["test"]["pipe"] != pytest.approx(plain["test"]["pipe"], abs=1e-6)
+    assert profiled["test"]["pipe"] != pytest.approx(plain["test"]["pipe"], abs=1e-6)
+    # the profile targets identified the training and the validation parts (dsub9, dsub15; vga), stored in --fits
+    assert len(list((tmp_path / "fits").rglob("*.pt"))) == 3
+    # the folder reads as a run: the other scripts load its stage-1 encoder
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from common import load_encoder, load_run
+    encoder = load_run(tmp_path / "force100")[2][0]
+    load_encoder(encoder, tmp_path / "force100")
