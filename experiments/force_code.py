@@ -35,6 +35,7 @@ from torch.utils.data import DataLoader, TensorDataset
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import PartData, data_scales
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.vae import VAEOutput
 from pipe.training.fit import fit_head, fit_stage
 from pipe.training.stages import VAEStage
 from pipe.training.trainer import make_trainer, per_process_batch
@@ -73,26 +74,27 @@ def standardised(train: np.ndarray, val: np.ndarray) -> tuple[torch.Tensor, torc
     mean, std = train.mean(0), train.std(0)
     std[std == 0] = 1.0
     return (torch.tensor((train - mean) / std, dtype=torch.float32),
-            torch.tensor((val.reshape(len(val), -1) - mean) / std, dtype=torch.float32))
+            torch.tensor((val - mean) / std, dtype=torch.float32))
 
 
 def signatures(target: str, cfg: DictConfig, model: PIPEModel, train: list[PartData], val: list[PartData],
                bins: int, fits: str) -> tuple[torch.Tensor, torch.Tensor]:
     """The standardised signatures the code learns to predict: the measured force (`force`) or the identified
     profiles (`profile`) of the training and the validation parts."""
-    if target == "force":
-        rows = [np.stack([force_signature(p, bins) for p in split]) if split else np.zeros((0, bins))
-                for split in (train, val)]
-    else:
-        rows = [profile_signatures(cfg, model, split, fits) if split else np.zeros((0, 1)) for split in (train, val)]
-    return standardised(*rows)
+    def rows(parts: list[PartData]) -> np.ndarray:
+        if target == "force":
+            return np.stack([force_signature(p, bins) for p in parts])
+        return profile_signatures(cfg, model, parts, fits)
+
+    train_rows = rows(train)
+    return standardised(train_rows, rows(val) if val else np.zeros((0, train_rows.shape[1])))
 
 
 class ForceShapedVAEStage(VAEStage):
     """Stage 1 (`VAEStage`) plus, in the training loss, `weight` x the mean squared error of a linear readout
-    of the code's mean against the batch's standardised force signatures (`targets`: the split's rows, by the
-    part's index). The validation loss that chooses the checkpoint stays stage 1's own; the term is logged
-    beside it (`vae/<split>_force`, unweighted)."""
+    of the code's mean against the batch's standardised signatures (`signatures`; the targets' rows are the
+    split's parts, by index). The validation loss that chooses the checkpoint stays stage 1's own; the term is
+    logged beside it (`vae/<split>_force`, unweighted, whatever the target)."""
 
     def __init__(self, encoder: torch.nn.Module, lr: float, kl_weight: float, feature_dtype: str, weight: float,
                  train_targets: torch.Tensor, val_targets: torch.Tensor) -> None:
@@ -106,7 +108,7 @@ class ForceShapedVAEStage(VAEStage):
         self.code: torch.Tensor | None = None       # the last forward pass's code means, kept by the hook below
         encoder.register_forward_hook(self._keep_code)
 
-    def _keep_code(self, module: torch.nn.Module, inputs: tuple, out: torch.Tensor) -> None:
+    def _keep_code(self, module: torch.nn.Module, inputs: tuple, out: VAEOutput) -> None:
         self.code = out.mu
 
     def _step_with_force(self, batch: list[torch.Tensor], split: str) -> torch.Tensor:
