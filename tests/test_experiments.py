@@ -316,7 +316,6 @@ def test_force_signature_averages_the_trials_force_in_bins_of_depth_and_fills_em
     np.testing.assert_allclose(force_signature(part(([0, 10], [2, 8])), 4), [2.0, 4.0, 6.0, 8.0])
 
 
-
 def test_signatures_are_standardised_by_the_training_parts_alone():
     import numpy as np
     sys.path.insert(0, str(ROOT / "experiments"))
@@ -327,6 +326,7 @@ def test_signatures_are_standardised_by_the_training_parts_alone():
     np.testing.assert_allclose(train_z.numpy(), [[-1.0, 0.0], [1.0, 0.0]])
     np.testing.assert_allclose(val_z.numpy(), [[2.0, 2.0]])      # (4 - 2) / 1 and (7 - 5) / 1
     assert standardised(train, np.zeros((0, 2)))[1].shape == (0, 2)
+
 
 @pytest.mark.slow
 def test_force_code_without_the_term_is_train_pys_run_and_with_it_another_encoder(trained_run, tiny_data, tmp_path):
