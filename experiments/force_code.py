@@ -36,6 +36,8 @@ from pipe.data.batches import stack_clouds
 from pipe.data.prepared import PartData, data_scales
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import VAEOutput
+from pipe.params import CONFIG_MODULE
+from pipe.pipeline import latent_codes
 from pipe.training.fit import fit_head, fit_stage
 from pipe.training.stages import VAEStage
 from pipe.training.trainer import make_trainer, per_process_batch
@@ -106,7 +108,7 @@ class ForceShapedVAEStage(VAEStage):
         self.register_buffer("train_targets", train_targets)
         self.register_buffer("val_targets", val_targets)
         self.code: torch.Tensor | None = None       # the last forward pass's code means, kept by the hook below
-        encoder.register_forward_hook(self._keep_code)
+        self.hook = encoder.register_forward_hook(self._keep_code)      # removed once stage 1 is fitted
 
     def _keep_code(self, module: torch.nn.Module, inputs: tuple, out: VAEOutput) -> None:
         self.code = out.mu
@@ -145,15 +147,17 @@ def fit_force_shaped_vae(cfg: DictConfig, encoder: torch.nn.Module, train: list[
     module = ForceShapedVAEStage(encoder, stage.lr, stage.kl_weight, stage.feature_dtype, weight,
                                  train_targets, val_targets)
     batch = per_process_batch(stage.batch_size, trainer)
-    return fit_stage(trainer, module, indexed_loader(train, batch, True, cfg.seed),
-                     indexed_loader(val, batch, False, cfg.seed) if val else None, run_dir, "vae", False).seconds
+    fitted = fit_stage(trainer, module, indexed_loader(train, batch, True, cfg.seed),
+                       indexed_loader(val, batch, False, cfg.seed) if val else None, run_dir, "vae", False)
+    module.hook.remove()
+    return fitted.seconds
 
 
 def compose_run(run_dir: Path, overrides: list[str]) -> None:
     """train.py's config with `overrides`, resolved, as `run_dir`/config.yaml (as train.py writes it)."""
     from hydra import compose, initialize_config_module
 
-    with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
+    with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
     with open_dict(cfg):
         cfg.paths.output_dir = str(run_dir)
@@ -166,12 +170,11 @@ def run(out: str, run_dir: Path, target: str, weight: float, bins: int, fits: st
         raise SystemExit(f"{run_dir} already holds checkpoints; choose another folder")
     compose_run(run_dir, overrides)
     cfg, data, (encoder, head, dynamics) = load_run(run_dir)
-    train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
+    train, val = data.splits["train"], data.splits["val"]
     model = PIPEModel(encoder, head, dynamics, *data_scales(train))
     targets = signatures(target, cfg, model, train, val, bins, fits)
     vae_seconds = fit_force_shaped_vae(cfg, encoder, train, val, run_dir, weight, *targets)
-    index = {p.name: i for i, p in enumerate(train + val + test)}
-    latents = model.latent(stack_clouds(train + val + test))
+    latents, _, index = latent_codes(model, data)
     with tempfile.TemporaryDirectory() as tmp:      # stage 2's checkpoints are not kept: the row is the result
         head_seconds = fit_head(cfg, model, latents, index, train, val, Path(tmp), False, []).seconds
     variant = f"{target}={weight:g}" + (f"+bins={bins}" if target == "force" and bins != BINS else "")
