@@ -45,7 +45,8 @@ def oracle_context(run_dir: Path) -> tuple[DictConfig, list, EvalContext]:
 
 
 def load_encoder(encoder: torch.nn.Module, run_dir: Path) -> None:
-    """The run's best stage-1 weights (the checkpoint's `encoder.` entries: force_code.py's also holds its readout)."""
+    """The run's best stage-1 weights (the checkpoint's `encoder.` entries: with stages.vae.force_weight it
+    also holds the force readout)."""
     state = torch.load(run_dir / "checkpoints/vae/best.ckpt", map_location="cpu", weights_only=True)["state_dict"]
     encoder.load_state_dict({k.removeprefix("encoder."): v for k, v in state.items() if k.startswith("encoder.")})
 

@@ -86,10 +86,11 @@ def augmented_stage(rotate: bool, scale: float, draws: list[torch.Tensor] | None
     generator = torch.Generator().manual_seed(seed)
 
     class Stage(VAEStage):
-        def training_step(self, clouds, batch_idx):
+        def training_step(self, batch, batch_idx):
+            clouds, rows = batch
             if draws is not None:
                 clouds = resample(clouds, draws, generator)
-            return self._step(augment(clouds, rotate, scale, generator), "train")
+            return self._step([augment(clouds, rotate, scale, generator), rows], "train")
 
     return Stage
 

@@ -54,7 +54,7 @@ from pipe.tracking import (
     parent_run,
     tracked_run,
 )
-from pipe.training.fit import check_varying_force, fit_head, fit_vae, head_loss
+from pipe.training.fit import check_varying_force, fit_head, fit_vae, force_setting, head_loss
 from pipe.training.trainer import checkpoint_dir
 
 log = logging.getLogger(__name__)
@@ -224,6 +224,7 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     `mlflow.enabled` is off."""
     phase = check_phase(cfg)
     loss = head_loss(cfg)               # an unknown stage-2 loss fails now, not after stage 1
+    force_setting(cfg)                  # so does a wrong stage-1 force term
     resume = cfg.resume is not None
     trained_dir = Path(cfg.resume or cfg.paths.output_dir)       # the checkpoints' folder
     run_dir = Path(cfg.paths.output_dir) if phase == "evaluate" else trained_dir   # where this run writes

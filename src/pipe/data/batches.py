@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, TensorDataset
 
 from pipe.data.prepared import PartData
 from pipe.data.preprocess import Profile
@@ -70,8 +70,9 @@ def unpad(values: np.ndarray, part: PartData) -> list[np.ndarray]:
 
 
 def cloud_loader(parts: list[PartData], batch_size: int, shuffle: bool, seed: int) -> DataLoader:
-    return DataLoader(stack_clouds(parts), batch_size=batch_size, shuffle=shuffle,
-                      generator=torch.Generator().manual_seed(seed))
+    """Batches of (the parts' clouds, their rows in `parts`), in an order fixed by `seed`."""
+    return DataLoader(TensorDataset(stack_clouds(parts), torch.arange(len(parts))), batch_size=batch_size,
+                      shuffle=shuffle, generator=torch.Generator().manual_seed(seed))
 
 
 def trial_loader(parts: list[PartData], part_index: dict[str, int], batch_size: int, shuffle: bool,

@@ -21,6 +21,7 @@ from pipe.data.prepared import PartData
 from pipe.errors import PipeError
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
+from pipe.training.force_signature import force_signatures
 from pipe.training.stages import HeadStage, VAEStage, check_head_loss
 from pipe.training.trainer import (
     checkpoint_dir,
@@ -79,13 +80,29 @@ def logged_minimum(run_dir: Path, stage: str, column: str) -> float | None:
 
 def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val: list[PartData], run_dir: Path,
             resume: bool, loggers: list[Logger]) -> StageFit:
-    """Stage 1 (`cfg.stages.vae`): the encoder learns to reconstruct the training clouds."""
+    """Stage 1 (`cfg.stages.vae`): the encoder learns to reconstruct the training clouds (and, with
+    `force_weight` > 0, to predict their parts' force signatures)."""
     stage = cfg.stages.vae
+    force_weight, bins = force_setting(cfg)
+    signatures = force_signatures(train, val, bins) if force_weight > 0 else None
     trainer = make_trainer(cfg.trainer, run_dir, "vae", stage.epochs, bool(val), loggers, resume)
-    module = VAEStage(encoder, lr=stage.lr, kl_weight=stage.kl_weight, feature_dtype=stage.feature_dtype)
+    module = VAEStage(encoder, lr=stage.lr, kl_weight=stage.kl_weight, feature_dtype=stage.feature_dtype,
+                      force_weight=force_weight, signatures=signatures)
     batch = per_process_batch(stage.batch_size, trainer)
     return fit_stage(trainer, module, cloud_loader(train, batch, True, cfg.seed),
                      cloud_loader(val, batch, False, cfg.seed) if val else None, run_dir, "vae", resume)
+
+
+def force_setting(cfg: DictConfig) -> tuple[float, int]:
+    """The configured stage-1 force term, checked: its weight (0: none) and its signatures' depth bins; no term
+    for a run configured before the options existed."""
+    stage = cfg.stages.vae
+    weight, bins = stage.get("force_weight", 0.0), stage.get("force_bins", 16)
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or weight < 0:
+        raise PipeError(f"stages.vae.force_weight must be a number, 0 or more (0: no force term), not {weight!r}")
+    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
+        raise PipeError(f"stages.vae.force_bins must be a whole number, 1 or more, not {bins!r}")
+    return float(weight), bins
 
 
 def head_loss(cfg: DictConfig) -> str:

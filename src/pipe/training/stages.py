@@ -33,17 +33,34 @@ def check_head_loss(name: str) -> str:
 
 class VAEStage(L.LightningModule):
     """Stage 1: the VAE reconstructs point clouds; loss = Chamfer (paper) + kl_weight * KL. `feature_dtype`
-    the encoder's feature network trains in (`PointCloudVAE.train_feature_dtype`)."""
+    the encoder's feature network trains in (`PointCloudVAE.train_feature_dtype`).
 
-    def __init__(self, encoder: PointCloudVAE, lr: float, kl_weight: float, feature_dtype: str = "float32") -> None:
+    Given `signatures`, the training loss gains `force_weight` x the mean squared error of a linear
+    readout of the code's mean against the batch's parts' rows of `signatures` (the training and the
+    validation parts' standardised force signatures, `pipe.training.force_signature`): the code learns what
+    the force depends on too. The validation loss that chooses the checkpoint stays Chamfer + KL; the term is
+    logged beside it (`vae/<split>_force`, unweighted). Batches are (clouds, the clouds' rows in their split).
+    """
+
+    def __init__(self, encoder: PointCloudVAE, lr: float, kl_weight: float, feature_dtype: str = "float32",
+                 force_weight: float = 0.0, signatures: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
         super().__init__()
         if feature_dtype not in FEATURE_DTYPES:
             raise PipeError(f"unknown stages.vae.feature_dtype {feature_dtype!r}; choose one of "
                             f"{', '.join(FEATURE_DTYPES)}")
-        self.encoder, self.lr, self.kl_weight = encoder, lr, kl_weight
+        self.encoder, self.lr, self.kl_weight, self.force_weight = encoder, lr, kl_weight, force_weight
         encoder.train_feature_dtype = FEATURE_DTYPES[feature_dtype]
+        self.readout: torch.nn.Linear | None = None
+        if signatures is not None:
+            train, val = signatures
+            with torch.random.fork_rng():   # the readout's initial weights leave the run's random stream alone
+                torch.manual_seed(0)
+                self.readout = torch.nn.Linear(encoder.latent_dim, train.shape[1])
+            self.register_buffer("train_signatures", train)
+            self.register_buffer("val_signatures", val)
 
-    def _step(self, clouds: torch.Tensor, split: str) -> torch.Tensor:
+    def _step(self, batch: list[torch.Tensor], split: str) -> torch.Tensor:
+        clouds, rows = batch
         out = self.encoder(clouds)
         check_finite(out.recon, f"{split} reconstruction", self, "stage 1 (VAE)", "stages.vae.lr")
         if split == "val":     # the nearest pairs once, for the loss and the paper's distance
@@ -59,16 +76,22 @@ class VAEStage(L.LightningModule):
                       batch_size=size, on_epoch=True, on_step=False, prog_bar=split == "val", sync_dist=True)
         if split == "val":
             self.log("vae/val_nn_distance_mm", distance.mean(), batch_size=size, sync_dist=True)
-        return loss
+        if self.readout is None:
+            return loss
+        targets = (self.train_signatures if split == "train" else self.val_signatures)[rows]
+        force = torch.nn.functional.mse_loss(self.readout(out.mu), targets)
+        self.log(f"vae/{split}_force", force, batch_size=size, on_epoch=True, on_step=False, sync_dist=True)
+        return loss + self.force_weight * force
 
-    def training_step(self, clouds: torch.Tensor, batch_idx: int) -> torch.Tensor:
-        return self._step(clouds, "train")
+    def training_step(self, batch: list[torch.Tensor], batch_idx: int) -> torch.Tensor:
+        return self._step(batch, "train")
 
-    def validation_step(self, clouds: torch.Tensor, batch_idx: int) -> None:
-        self._step(clouds, "val")
+    def validation_step(self, batch: list[torch.Tensor], batch_idx: int) -> None:
+        self._step(batch, "val")
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        return torch.optim.Adam(self.encoder.parameters(), lr=self.lr, fused=True)   # one fused kernel, same math
+        parameters = list(self.encoder.parameters()) + (list(self.readout.parameters()) if self.readout else [])
+        return torch.optim.Adam(parameters, lr=self.lr, fused=True)   # one fused kernel, same math
 
 
 class HeadStage(L.LightningModule):
