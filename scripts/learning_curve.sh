@@ -6,7 +6,8 @@
 # gpr's fits of the training parts are computed once, not at every size and seed. It can be stopped and
 # started again: a run whose results.json exists is kept, an unfinished one is started over. FAMILIES
 # chooses the families (default "pins rect"), e.g. to run them one after the other on separate days or
-# side by side on separate machines. Extra arguments are Hydra overrides for every run.
+# side by side on separate machines, and SIZES the numbers of training parts (default "5 10 20 50 100").
+# Extra arguments are Hydra overrides for every run.
 # EVALUATE_FROM=<folder of a finished curve> evaluates that curve's trained models again (phase=evaluate,
 # their checkpoints only read) into OUT instead of training: after a change of the evaluation alone (e.g.
 # the identification engine), the same results as a whole new curve in a fraction of its time.
@@ -21,8 +22,9 @@ shift
 mkdir -p "$out"
 fits="$(realpath "$out")/identification_fits"
 read -ra families <<< "${FAMILIES:-pins rect}"
+read -ra sizes <<< "${SIZES:-5 10 20 50 100}"
 for family in "${families[@]}"; do
-    for count in 5 10 20 50 100; do
+    for count in "${sizes[@]}"; do
         run="$out/$family/train_$count"
         [ -f "$run/results.json" ] && continue
         rm -rf "$run"
