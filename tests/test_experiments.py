@@ -116,6 +116,44 @@ def test_summarise_tables_each_domain_and_variant_over_the_seeds(tmp_path):
     assert "| variant | seeds | val: PIPE |" in printed and "| variant | seeds | train: PIPE | val: PIPE |" in printed
 
 
+def write_curve_run(folder, family: str, count: int, seed: int, objective: float, pipe: float, nearest: float) -> None:
+    """A learning-curve seed folder as far as force_selection.py reads it: stage 2's best validation loss and
+    the held-out FIT(F) of PIPE and `nearest`."""
+    run = folder / family / f"train_{count}" / f"seed_{seed}"
+    run.mkdir(parents=True)
+    (run / "training.json").write_text(json.dumps({"seconds": {}, "objective": objective}))
+    (run / "metrics.json").write_text(json.dumps({"test": {"fit_F": pipe},
+                                                  "baselines": {"nearest": {"fit_F": nearest}}}))
+
+
+def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tmp_path):
+    plain, small, force = tmp_path / "plain", tmp_path / "small", tmp_path / "force"
+    for seed, (objective, pipe) in enumerate([(0.30, 60.0), (0.20, 62.0), (0.40, 64.0)]):
+        write_curve_run(plain, "rect", 50, seed, objective, pipe, 50.0 + seed)
+    for seed, (objective, pipe) in enumerate([(0.25, 78.0), (0.30, 76.0), (0.30, 80.0)]):
+        write_curve_run(force, "rect", 50, seed, objective, pipe, 58.0 + 2 * seed)
+    for seed in range(3):       # a size whose default runs are in another folder of the candidate
+        write_curve_run(small, "pins", 5, seed, 0.5, 40.0 + seed, 30.0)
+        write_curve_run(force, "pins", 5, seed, 0.6 if seed else 0.4, 20.0, 30.0)
+    write_curve_run(plain, "pins", 10, 0, 0.1, 70.0, 60.0)     # a size without every seed: left out
+    out = tmp_path / "selection.json"
+    printed = run_script("force_selection.py", str(out), f"0={small},{plain}", f"1000={force}")
+    rows = {(row["family"], row["train"]): row for row in json.loads(out.read_text())}
+    assert set(rows) == {("rect", 50), ("pins", 5)}
+    rect = rows["rect", 50]
+    # per seed: 0.25 < 0.30, 0.20 < 0.30, 0.30 < 0.40; per size: mean 0.2833 < 0.30
+    assert rect["per seed"]["chosen"] == ["1000", "0", "1000"] and rect["per seed"]["pipe"] == [78.0, 62.0, 80.0]
+    assert rect["per seed"]["nearest"] == [58.0, 51.0, 62.0]
+    assert rect["per size"]["chosen"] == ["1000"] * 3 and rect["per size"]["pipe"] == [78.0, 76.0, 80.0]
+    # against the default's 62.00 ± 2.00: 73.33 ± 9.87 is a tie, 78.00 ± 2.00 better
+    assert rect["per seed"]["verdict"] == "tie" and rect["per size"]["verdict"] == "better"
+    assert rows["pins", 5]["per seed"]["chosen"] == ["1000", "0", "0"]
+    assert rows["pins", 5]["per size"]["chosen"] == ["0"] * 3
+    spread = statistics.stdev([78.0, 62.0, 80.0])
+    assert (f"| rect | 50 | 0.3000 | 0.2833 | 62.00 ± 2.00 | 78.00 ± 2.00 | 1000, 0, 1000 | 73.33 ± {spread:.2f} (tie) "
+            "|") in printed
+
+
 @pytest.mark.slow
 def test_part_cv_holds_out_each_non_test_part_in_turn(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
