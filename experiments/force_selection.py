@@ -1,10 +1,10 @@
 """Issue 9: stage 1's force weight chosen on the validation parts, at each size of the learning curve.
 
 Given learning curves trained with different `stages.vae.force_weight` values (each a folder of
-<family>/train_<n>/seed_<k> runs, as scripts/learning_curve.sh writes them), every seed's run is chosen
-among the candidates by stage 2's best validation loss (training.json's `objective`, `head/val_loss` on
-the 10 validation parts: the loss that selects PIPE's checkpoint and that the Optuna search minimises),
-never by a test metric. Two rules:
+<family>/train_<n>/seed_<k> runs, as scripts/learning_curve.sh writes them, or of <domain>/seed_<k> runs of
+the paper domains), every seed's run is chosen among the candidates by stage 2's best validation loss
+(training.json's `objective`, `head/val_loss` on the validation parts: the loss that selects PIPE's
+checkpoint and that `hparams_search=force_weight` minimises), never by a test metric. Two rules:
   per seed   each seed keeps its own lowest-objective candidate (what one `train.py` run per candidate
              and seed, then the lower loss, gives); the spread includes the choice's own noise
   per size   every seed keeps the candidate with the lowest objective averaged over the seeds (what a
@@ -13,7 +13,8 @@ and the chosen runs' held-out FIT(F) of PIPE and `nearest` (metrics.json) as mea
 PIPE's verdict against the first candidate's (the default) by the spread rule.
 
 usage: python experiments/force_selection.py OUT.json 0=runs/curve_default1t 1000=runs/curve_force
-A candidate may name several folders, the first that holds a run is read: 0=runs/curve_plain,runs/curve_default1t
+A candidate may name several folders, the first that holds a finished run is read:
+0=runs/curve_plain,runs/curve_default1t
 """
 
 from __future__ import annotations
@@ -26,30 +27,34 @@ from pathlib import Path
 from pipe.evaluation.spread import spread, verdict
 
 
-def run_folder(folders: list[Path], family: str, count: int, seed: int) -> Path | None:
-    for folder in folders:
-        run = folder / family / f"train_{count}" / f"seed_{seed}"
-        if (run / "training.json").is_file() and (run / "metrics.json").is_file():
-            return run
-    return None
-
-
 def read_run(run: Path) -> dict[str, float]:
     metrics = json.loads((run / "metrics.json").read_text())
     return {"objective": json.loads((run / "training.json").read_text())["objective"],
             "pipe": metrics["test"]["fit_F"], "nearest": metrics["baselines"]["nearest"]["fit_F"]}
 
 
-def cells(folders: dict[str, list[Path]], seeds: list[int]) -> dict[tuple[str, int], dict[str, list[dict]]]:
-    """(family, training parts) -> candidate -> the seeds' runs, where every candidate has every seed."""
-    first = next(iter(folders.values()))
-    found = {(run.parent.parent.name, int(run.parent.name.removeprefix("train_")))
-             for folder in first for run in folder.glob("*/train_*/seed_*")}
+def finished(run: Path) -> bool:
+    return (run / "training.json").is_file() and (run / "metrics.json").is_file()
+
+
+def sort_key(domain: str) -> tuple[str, int]:
+    """rect/train_50 before rect/train_100; a paper domain (conn) by its name."""
+    family, _, size = domain.partition("/train_")
+    return family, int(size) if size else 0
+
+
+def cells(folders: dict[str, list[Path]], seeds: list[int]) -> dict[str, dict[str, list[dict]]]:
+    """domain -> candidate -> the seeds' runs, where every candidate has every seed. A domain is a seed folder's
+    parent within a candidate's folder: rect/train_50 for a learning curve's, conn for a `seeds=` run's."""
+    domains = {str(run.parent.relative_to(folder)) for paths in folders.values() for folder in paths
+               for run in folder.glob("**/seed_*") if finished(run)}
     table = {}
-    for family, count in sorted(found):
-        runs = {label: [run_folder(paths, family, count, seed) for seed in seeds] for label, paths in folders.items()}
+    for domain in sorted(domains, key=sort_key):
+        runs = {label: [next((folder / domain / f"seed_{seed}" for folder in paths
+                              if finished(folder / domain / f"seed_{seed}")), None) for seed in seeds]
+                for label, paths in folders.items()}
         if all(run is not None for seed_runs in runs.values() for run in seed_runs):
-            table[family, count] = {label: [read_run(run) for run in seed_runs] for label, seed_runs in runs.items()}
+            table[domain] = {label: [read_run(run) for run in seed_runs] for label, seed_runs in runs.items()}
     return table
 
 
@@ -73,8 +78,8 @@ def main() -> None:
                for label, paths in (candidate.split("=", 1) for candidate in args.candidates)}
     default = next(iter(folders))
     rows = []
-    for (family, count), candidates in cells(folders, args.seeds).items():
-        row = {"family": family, "train": count,
+    for domain, candidates in cells(folders, args.seeds).items():
+        row = {"domain": domain,
                "candidates": {label: {key: [run[key] for run in runs] for key in ("objective", "pipe", "nearest")}
                               for label, runs in candidates.items()}}
         for rule, (chosen, runs) in select(candidates).items():
@@ -85,17 +90,17 @@ def main() -> None:
         rows.append(row)
     args.out.write_text(json.dumps(rows, indent=1) + "\n")
     labels = list(folders)
-    print("| family | parts | " + " | ".join(f"objective, {label}" for label in labels) + " | "
+    print("| domain | " + " | ".join(f"objective, {label}" for label in labels) + " | "
           + " | ".join(f"PIPE, {label}" for label in labels)
           + " | chosen per seed | PIPE, chosen per seed | nearest, chosen per seed | chosen per size"
           " | PIPE, chosen per size |")
-    print("| --- " * (7 + 2 * len(labels)) + "|")
+    print("| --- " * (6 + 2 * len(labels)) + "|")
     for row in rows:
         cand = row["candidates"]
         objective = " | ".join(f"{statistics.fmean(cand[label]['objective']):.4f}" for label in labels)
         pipe = " | ".join(str(spread(cand[label]["pipe"])) for label in labels)
         seed_rule, size_rule = row["per seed"], row["per size"]
-        print(f"| {row['family']} | {row['train']} | {objective} | {pipe} | {', '.join(seed_rule['chosen'])} | "
+        print(f"| {row['domain']} | {objective} | {pipe} | {', '.join(seed_rule['chosen'])} | "
               f"{spread(seed_rule['pipe'])} ({seed_rule['verdict']}) | {spread(seed_rule['nearest'])} | "
               f"{size_rule['chosen'][0]} | {spread(size_rule['pipe'])} ({size_rule['verdict']}) |")
 

@@ -138,20 +138,20 @@ def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tm
     write_curve_run(plain, "pins", 10, 0, 0.1, 70.0, 60.0)     # a size without every seed: left out
     out = tmp_path / "selection.json"
     printed = run_script("force_selection.py", str(out), f"0={small},{plain}", f"1000={force}")
-    rows = {(row["family"], row["train"]): row for row in json.loads(out.read_text())}
-    assert set(rows) == {("rect", 50), ("pins", 5)}
-    rect = rows["rect", 50]
+    rows = {row["domain"]: row for row in json.loads(out.read_text())}
+    assert list(rows) == ["pins/train_5", "rect/train_50"]
+    rect = rows["rect/train_50"]
     # per seed: 0.25 < 0.30, 0.20 < 0.30, 0.30 < 0.40; per size: mean 0.2833 < 0.30
     assert rect["per seed"]["chosen"] == ["1000", "0", "1000"] and rect["per seed"]["pipe"] == [78.0, 62.0, 80.0]
     assert rect["per seed"]["nearest"] == [58.0, 51.0, 62.0]
     assert rect["per size"]["chosen"] == ["1000"] * 3 and rect["per size"]["pipe"] == [78.0, 76.0, 80.0]
     # against the default's 62.00 ± 2.00: 73.33 ± 9.87 is a tie, 78.00 ± 2.00 better
     assert rect["per seed"]["verdict"] == "tie" and rect["per size"]["verdict"] == "better"
-    assert rows["pins", 5]["per seed"]["chosen"] == ["1000", "0", "0"]
-    assert rows["pins", 5]["per size"]["chosen"] == ["0"] * 3
+    assert rows["pins/train_5"]["per seed"]["chosen"] == ["1000", "0", "0"]
+    assert rows["pins/train_5"]["per size"]["chosen"] == ["0"] * 3
     spread = statistics.stdev([78.0, 62.0, 80.0])
-    assert (f"| rect | 50 | 0.3000 | 0.2833 | 62.00 ± 2.00 | 78.00 ± 2.00 | 1000, 0, 1000 | 73.33 ± {spread:.2f} (tie) "
-            "|") in printed
+    assert (f"| rect/train_50 | 0.3000 | 0.2833 | 62.00 ± 2.00 | 78.00 ± 2.00 | 1000, 0, 1000 | "
+            f"73.33 ± {spread:.2f} (tie) |") in printed
 
 
 @pytest.mark.slow
