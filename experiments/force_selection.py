@@ -12,7 +12,10 @@ checkpoint and that `hparams_search=force_weight` minimises), never by a test me
 and the chosen runs' held-out FIT(F) of PIPE and `nearest` (metrics.json) as mean ± std over the seeds,
 PIPE's verdict against the first candidate's (the default) by the spread rule.
 
-usage: python experiments/force_selection.py OUT.json 0=runs/curve_default1t 1000=runs/curve_force
+usage: python experiments/force_selection.py OUT.json 0=runs/curve_default1t 1000=runs/curve_force \
+           [--plot curve.png --oracle runs/curve_force_oracle]
+With --plot, the choice per size's learning curve as `pipe report curve` draws one (PIPE chosen, each
+candidate's PIPE, `nearest` of the chosen runs, the oracle of --oracle's runs at every size).
 A candidate may name several folders, the first that holds a finished run is read:
 0=runs/curve_plain,runs/curve_default1t
 """
@@ -24,7 +27,8 @@ import json
 import statistics
 from pathlib import Path
 
-from pipe.evaluation.spread import spread, verdict
+from pipe.evaluation.curve import Curve, plot_curve
+from pipe.evaluation.spread import Spread, spread, verdict
 
 
 def read_run(run: Path) -> dict[str, float]:
@@ -68,11 +72,41 @@ def select(candidates: dict[str, list[dict]]) -> dict[str, tuple[list[str], list
             "per size": ([best] * len(seeds), candidates[best])}
 
 
+def selection_curve(rows: list[dict], oracles: dict[str, Spread]) -> Curve:
+    """The learning curve of the choice per size as `pipe report curve` draws one: PIPE of the chosen runs, each
+    candidate's PIPE, `nearest` of the chosen runs, and a family's oracle (which reads no code) at every size."""
+    curve: Curve = {}
+    for row in rows:
+        family, _, size = row["domain"].partition("/train_")
+        if not size:                    # a paper domain: no curve
+            continue
+        points = curve.setdefault(family, {"pipe": {}})
+        count = int(size)
+        points["pipe"][count] = spread(row["per size"]["pipe"])
+        for label, values in row["candidates"].items():
+            points.setdefault(f"pipe, force_weight={label}", {})[count] = spread(values["pipe"])
+        points.setdefault("nearest", {})[count] = spread(row["per size"]["nearest"])
+        if family in oracles:
+            points.setdefault("oracle", {})[count] = oracles[family]
+    return curve
+
+
+def read_oracles(folder: Path | None) -> dict[str, Spread]:
+    """family -> the oracle's FIT(F) over the seeds, from the results.json of a curve folder's runs."""
+    oracles = {}
+    for document in sorted(folder.glob("*/train_*/results.json")) if folder else []:
+        value = json.loads(document.read_text())["methods"]["oracle"]["fit_F"]
+        oracles[document.parent.parent.name] = Spread(value["mean"], value["std"], value["n"])
+    return oracles
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path, help="JSON file of every cell's numbers")
     parser.add_argument("candidates", nargs="+", help="WEIGHT=FOLDER[,FOLDER...], the default first")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--plot", type=Path, help="PNG of the choice per size's learning curve")
+    parser.add_argument("--oracle", type=Path, help="a curve folder whose runs hold the oracle, drawn at every size")
     args = parser.parse_args()
     folders = {label: [Path(p) for p in paths.split(",")]
                for label, paths in (candidate.split("=", 1) for candidate in args.candidates)}
@@ -89,6 +123,8 @@ def main() -> None:
                          "verdict": verdict(pipe, spread(row["candidates"][default]["pipe"]), "fit_F")}
         rows.append(row)
     args.out.write_text(json.dumps(rows, indent=1) + "\n")
+    if args.plot:
+        plot_curve(selection_curve(rows, read_oracles(args.oracle)), args.plot)
     labels = list(folders)
     print("| domain | " + " | ".join(f"objective, {label}" for label in labels) + " | "
           + " | ".join(f"PIPE, {label}" for label in labels)

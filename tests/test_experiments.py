@@ -136,8 +136,14 @@ def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tm
         write_curve_run(small, "pins", 5, seed, 0.5, 40.0 + seed, 30.0)
         write_curve_run(force, "pins", 5, seed, 0.6 if seed else 0.4, 20.0, 30.0)
     write_curve_run(plain, "pins", 10, 0, 0.1, 70.0, 60.0)     # a size without every seed: left out
-    out = tmp_path / "selection.json"
-    printed = run_script("force_selection.py", str(out), f"0={small},{plain}", f"1000={force}")
+    oracle = tmp_path / "oracle" / "rect" / "train_100"
+    oracle.mkdir(parents=True)
+    (oracle / "results.json").write_text(json.dumps({"methods": {"oracle": {"fit_F": {"mean": 88.0, "std": 1.0,
+                                                                                      "n": 3}}}}))
+    out, png = tmp_path / "selection.json", tmp_path / "curve.png"
+    printed = run_script("force_selection.py", str(out), f"0={small},{plain}", f"1000={force}", "--plot", str(png),
+                         "--oracle", str(tmp_path / "oracle"))
+    assert png.read_bytes().startswith(b"\x89PNG")
     rows = {row["domain"]: row for row in json.loads(out.read_text())}
     assert list(rows) == ["pins/train_5", "rect/train_50"]
     rect = rows["rect/train_50"]
@@ -152,6 +158,15 @@ def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tm
     spread = statistics.stdev([78.0, 62.0, 80.0])
     assert (f"| rect/train_50 | 0.3000 | 0.2833 | 62.00 ± 2.00 | 78.00 ± 2.00 | 1000, 0, 1000 | "
             f"73.33 ± {spread:.2f} (tie) |") in printed
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from force_selection import read_oracles, selection_curve
+
+    from pipe.evaluation.spread import Spread
+
+    curve = selection_curve(list(rows.values()), read_oracles(tmp_path / "oracle"))
+    assert curve["rect"]["pipe"][50].mean == 78.0 and curve["rect"]["pipe, force_weight=0"][50].mean == 62.0
+    assert curve["rect"]["nearest"][50].mean == 60.0 and curve["rect"]["oracle"] == {50: Spread(88.0, 1.0, 3)}
+    assert curve["pins"]["pipe"][5].mean == 41.0 and "oracle" not in curve["pins"]
 
 
 @pytest.mark.slow
