@@ -108,11 +108,17 @@ def main() -> None:
     parser.add_argument("--plot", type=Path, help="PNG of the choice per size's learning curve")
     parser.add_argument("--oracle", type=Path, help="a curve folder whose runs hold the oracle, drawn at every size")
     args = parser.parse_args()
+    if any("=" not in candidate for candidate in args.candidates) or len(args.candidates) < 2:
+        parser.error("give at least two candidates as WEIGHT=FOLDER[,FOLDER...], e.g. 0=runs/a 1000=runs/b")
     folders = {label: [Path(p) for p in paths.split(",")]
                for label, paths in (candidate.split("=", 1) for candidate in args.candidates)}
     default = next(iter(folders))
+    table = cells(folders, args.seeds)
+    if not table:
+        parser.error(f"no domain has a finished run (training.json and metrics.json) of seeds {args.seeds} in "
+                     "every candidate's folders")
     rows = []
-    for domain, candidates in cells(folders, args.seeds).items():
+    for domain, candidates in table.items():
         row = {"domain": domain,
                "candidates": {label: {key: [run[key] for run in runs] for key in ("objective", "pipe", "nearest")}
                               for label, runs in candidates.items()}}

@@ -126,6 +126,16 @@ def write_curve_run(folder, family: str, count: int, seed: int, objective: float
                                                   "baselines": {"nearest": {"fit_F": nearest}}}))
 
 
+@pytest.mark.parametrize("candidates, message", [
+    (["0=runs/a"], "at least two candidates"), (["0=runs/a", "runs/b"], "at least two candidates"),
+    (["0=no/such/folder", "1000=nor/this"], "no domain has a finished run")])
+def test_force_selection_refuses_candidates_it_cannot_compare(candidates, message, tmp_path):
+    done = subprocess.run([sys.executable, "force_selection.py", str(tmp_path / "out.json"), *candidates],
+                          cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "out.json").exists()
+
+
 def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tmp_path):
     plain, small, force = tmp_path / "plain", tmp_path / "small", tmp_path / "force"
     for seed, (objective, pipe) in enumerate([(0.30, 60.0), (0.20, 62.0), (0.40, 64.0)]):
