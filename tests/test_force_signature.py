@@ -99,3 +99,20 @@ def test_a_wrong_force_term_is_refused_before_stage_one(tiny_data, tmp_path, set
                        *TINY_DOMAIN)
     assert result.returncode != 0 and message in result.stderr
     assert "Traceback" not in result.stderr and not (tmp_path / "checkpoints").exists()
+
+
+def test_a_resume_with_another_force_setting_is_refused_and_leaves_the_run_as_it_was(tiny_data, tmp_path):
+    run_domain(smoke_config(tiny_data, tmp_path, "mlflow.enabled=false", "phase=train", "stages.vae.force_weight=100",
+                            "stages.vae.force_bins=4"))
+    kept = [tmp_path / "config.yaml", tmp_path / "checkpoints/vae/last.ckpt", tmp_path / "checkpoints/head/last.ckpt",
+            tmp_path / "logs/vae/metrics.csv", tmp_path / "logs/head/metrics.csv"]
+    before = [path.read_bytes() for path in kept]
+    result = run_train("experiment=smoke", "mlflow.enabled=false", "phase=train", f"resume={tmp_path}",
+                       f"data.dir={tiny_data}", f"hydra.run.dir={tmp_path}", "stages.vae.epochs=3", *TINY_DOMAIN)
+    said = " ".join(result.stderr.split())          # as printed, folded to the terminal's width
+    assert result.returncode != 0 and "Traceback" not in said
+    assert "was trained with other settings than this run's: the weights of stage 'vae' differ in readout.bias, " \
+           "readout.weight, train_signatures, val_signatures" in said
+    assert "checkpoints/vae/last.ckpt" in said and "the run folder's config.yaml" in said
+    assert [path.read_bytes() for path in kept] == before
+

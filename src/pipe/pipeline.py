@@ -243,7 +243,9 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     if loss == "nmse" and phase != "evaluate":     # its trials must vary, checked before stage 1 too
         check_varying_force(data.splits["train"] + data.splits["val"])
     encoder, head, dynamics = build_components(cfg)
-    write_text_atomically(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    settings = OmegaConf.to_yaml(cfg, resolve=True)
+    if not resume or phase == "evaluate":  # a resumed folder keeps the settings of its weights until its stages fit
+        write_text_atomically(run_dir / "config.yaml", settings)
     names = {kind: cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "head", "model")}
     tags = {"domain": data.domain.name, **names, "git_commit": git_commit(Path(cfg.paths.root)),
             "dataset": str(data.dataset_dir), "dataset_version": data.dataset_version,
@@ -264,6 +266,8 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
             trained = load_trained(model, data, trained_dir)
         else:
             trained = train_stages(cfg, data, model, run_dir, resume, loggers)
+            if resume:
+                write_text_atomically(run_dir / "config.yaml", settings)
         if phase == "train":
             if tracking:
                 mlflow.log_metrics({f"time/{stage}_s": seconds for stage, seconds in trained.seconds.items()})

@@ -46,6 +46,7 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
     last = checkpoint_dir(run_dir, stage) / "last.ckpt"
     resume_from = last if resume and last.is_file() else None
     if resume_from:
+        check_resumable(module, resume_from, stage)     # before the loss log is touched
         forget_epochs_after(run_dir, stage, resume_from)
     start = time.perf_counter()
     with process_threads(trainer):
@@ -69,6 +70,20 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
     if score is None and taken and loss_log(run_dir, stage).is_file():   # a fit in started processes, or a
         score = logged_minimum(run_dir, stage, trainer.checkpoint_callback.monitor)   # moved folder: from the log
     return StageFit(time.perf_counter() - start, float(score) if score is not None else None)
+
+
+def check_resumable(module: L.LightningModule, checkpoint: Path, stage: str) -> None:
+    """Refuse to resume a stage from a checkpoint whose weights this run's settings do not make (another force
+    term, encoder or latent size): a message naming it and what differs, not Lightning's traceback."""
+    saved = torch.load(checkpoint, map_location="cpu", weights_only=False, mmap=True)["state_dict"]
+    own = module.state_dict()
+    differing = sorted(saved.keys() ^ own.keys()) + sorted(
+        key for key in saved.keys() & own.keys() if saved[key].shape != own[key].shape)
+    if differing:
+        shown = ", ".join(differing[:4]) + (f" and {len(differing) - 4} more" if len(differing) > 4 else "")
+        raise PipeError(f"was trained with other settings than this run's: the weights of stage {stage!r} differ in "
+                        f"{shown}; resume with the settings it was trained with (the run folder's config.yaml), or "
+                        f"train into another folder", checkpoint)
 
 
 def logged_minimum(run_dir: Path, stage: str, column: str) -> float | None:
