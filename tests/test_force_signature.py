@@ -115,4 +115,3 @@ def test_a_resume_with_another_force_setting_is_refused_and_leaves_the_run_as_it
            "readout.weight, train_signatures, val_signatures" in said
     assert "checkpoints/vae/last.ckpt" in said and "the run folder's config.yaml" in said
     assert [path.read_bytes() for path in kept] == before
-
