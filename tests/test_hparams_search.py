@@ -48,7 +48,7 @@ def test_the_force_weight_search_trains_each_weight_once_and_keeps_the_lower_val
     result = subprocess.run(
         [sys.executable, str(ROOT / "train.py"), "-m", "hparams_search=force_weight", "experiment=smoke",
          f"data.dir={tiny_data}", f"hydra.sweep.dir={tmp_path}", "mlflow.experiment=force_weight",
-         "mlflow.registered_model=null", "evaluation.baselines=[nearest]", *TINY_DOMAIN],
+         "evaluation.baselines=[nearest]", *TINY_DOMAIN],
         capture_output=True, text=True, timeout=900, cwd=ROOT, env=os.environ)
     assert result.returncode == 0, result.stderr[-3000:]
     client = MlflowClient()
@@ -64,3 +64,5 @@ def test_the_force_weight_search_trains_each_weight_once_and_keeps_the_lower_val
     assert best["best_value"] == pytest.approx(winner.data.metrics["objective"], rel=1e-6)
     assert float(best["best_params"]["stages.vae.force_weight"]) == float(winner.data.params["stages.vae.force_weight"])
     assert parent.data.params["best/stages.vae.force_weight"] == str(best["best_params"]["stages.vae.force_weight"])
+    # no trial registers its model (the last would become the registry's latest, not the best)
+    assert not [v for v in client.search_model_versions() if v.run_id in {r.info.run_id for r in runs}]
