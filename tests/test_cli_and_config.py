@@ -69,11 +69,11 @@ def test_experiment_paper_pins_the_papers_setup(monkeypatch):
         assert OmegaConf.select(cfg, key) == value, key
     assert cfg.encoder._target_.endswith("PointNetVAE") and cfg.head._target_.endswith("GaussianHead")
     assert cfg.model._target_.endswith("MDS2")
-    # the defaults differ from the paper's setup in the number of points, stage 2's loss and the head's width only
-    # (conf/experiment/paper.yaml, README, docs/experiments.md)
+    # the defaults differ from the paper's setup in the number of points, stage 2's loss, the head's width and
+    # stage 1's force weight only (conf/experiment/paper.yaml, README, docs/experiments.md)
     paper, default = (_flat(OmegaConf.to_container(c)) for c in (cfg, compose_config([])))
     assert {key for key in paper.keys() | default.keys() if paper.get(key) != default.get(key)} == {
-        "data.points", "stages.head.loss", "head.hidden"}
+        "data.points", "stages.head.loss", "head.hidden", "stages.vae.force_weight"}
 
 
 def test_a_test_part_may_not_leak_into_training():

@@ -63,6 +63,9 @@ def _train(cfg: DictConfig) -> float | None:
     for row in rows:
         table.add_row(*row)
     console.print(table)
+    runs = dict(zip(result.seeds, result.runs)) if cfg.seeds is not None else {None: result}
+    if chosen := force_choices({seed: run.force_weight for seed, run in runs.items() if run.force_weight}):
+        console.print(f"stage 1's force weight, chosen on the validation parts: {chosen}", markup=False)
     console.print(f"{wall_times(result.seconds, cfg.seeds is not None)}; results in {result.run_dir}")
     if result.mlflow_run_id:
         model = "<a seed's run id, in seed_<k>/mlflow_run_id>" if cfg.seeds is not None else result.mlflow_run_id
@@ -77,6 +80,15 @@ def wall_times(seconds: dict[str, float], seeds: bool) -> str:
     names = {"vae": "stage 1", "head": "stage 2", "evaluation": "evaluation"}
     timed = ", ".join(f"{label} {seconds[step]:.0f} s" for step, label in names.items() if step in seconds)
     return f"mean per seed: {timed}" if seeds else timed
+
+
+def force_choices(choices: dict[int | None, dict]) -> str:
+    """'seed 0: 1000 (objective 0.2060; 0: 0.2167), ...': each run's chosen weight and every candidate's
+    stage-2 objective ('' where no run chose one)."""
+    def one(seed: int | None, choice: dict) -> str:
+        objectives = "; ".join(f"{weight}: {value:.4g}" for weight, value in choice["objectives"].items())
+        return f"{'' if seed is None else f'seed {seed}: '}{choice['chosen']:g} (objective {objectives})"
+    return ", ".join(one(seed, choice) for seed, choice in choices.items())
 
 
 def job_config(cfg: DictConfig) -> None:

@@ -14,9 +14,9 @@ import copy
 import json
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -55,12 +55,20 @@ from pipe.tracking import (
     tracked_run,
 )
 from pipe.training.fit import check_varying_force, fit_head, fit_vae, force_setting, head_loss
+from pipe.training.force_choice import (
+    CANDIDATES_GLOB,
+    candidate_dir,
+    check_resumed_layout,
+    choose_weight,
+    weight_config,
+)
 from pipe.training.trainer import checkpoint_dir
 
 log = logging.getLogger(__name__)
 METRICS = ("fit_F", "fit_dF", "rms", "rms_rel")
 RUN_ID_FILE = "mlflow_run_id"   # in a run's folder: its MLflow run, which resume= continues
-TRAINING_FILE = "training.json"  # in a trained run's folder: each stage's wall time and stage 2's best loss
+TRAINING_FILE = "training.json"  # in a trained run's folder: each stage's wall time, stage 2's best loss and
+                                 #   the force weight it chose (pipe.training.force_choice)
 PHASES = ("all", "train", "evaluate")
 STAGES = ("vae", "head")
 
@@ -84,6 +92,8 @@ class RunResult:
     objective: float | None = None         # stage 2's best monitored loss (validation, else training): a sweep's
                                            # objective, never a test metric
     trained_dir: Path | None = None        # the folder of the checkpoints and loss logs (None: run_dir)
+    force_weight: dict[str, Any] | None = None   # stage 1's force weight chosen on the validation parts, with
+                                                 #   every candidate's objective (None: one weight was given)
 
     @property
     def pipe(self) -> MethodResult:
@@ -206,7 +216,9 @@ def check_phase(cfg: DictConfig) -> str:
 
 
 def check_trained(cfg: DictConfig, folder: Path) -> None:
-    """Refuse to evaluate a folder whose stages have not run to their configured epochs."""
+    """Refuse to evaluate a folder whose stages have not run to their configured epochs (the chosen force
+    weight's, where the run chose one)."""
+    folder = weights_dir(folder)
     for stage in STAGES:
         last, best = checkpoint_dir(folder, stage) / "last.ckpt", checkpoint_dir(folder, stage) / "best.ckpt"
         if not (last.is_file() and best.is_file()):
@@ -224,16 +236,15 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     `mlflow.enabled` is off."""
     phase = check_phase(cfg)
     loss = head_loss(cfg)               # an unknown stage-2 loss fails now, not after stage 1
-    force_setting(cfg)                  # so does a wrong stage-1 force term
+    weights, _ = force_setting(cfg)     # so does a wrong stage-1 force term
     resume = cfg.resume is not None
     trained_dir = Path(cfg.resume or cfg.paths.output_dir)       # the checkpoints' folder
     run_dir = Path(cfg.paths.output_dir) if phase == "evaluate" else trained_dir   # where this run writes
-    if resume and not (trained_dir / "checkpoints").is_dir():
-        raise PipeError("resume= names a folder without checkpoints; give the output folder of an earlier run",
-                        trained_dir)
+    if resume:
+        check_resumed_layout(trained_dir, choosing=len(weights) > 1)
     if phase == "evaluate":
         check_trained(cfg, trained_dir)
-    elif not resume and any((run_dir / "checkpoints").glob("*/*.ckpt")):
+    elif not resume and any(any(run_dir.glob(f"{folder}*.ckpt")) for folder in ("checkpoints/*/", CANDIDATES_GLOB)):
         raise PipeError("already holds the checkpoints of an earlier run; continue it with resume=<this folder> "
                         "or choose another hydra.run.dir", run_dir)
     ltv.set_backend(cfg.simulator)
@@ -261,13 +272,17 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
             else nullcontext() as active:
         if tracking and phase != "evaluate":
             write_text_atomically(id_file, active.info.run_id + "\n")   # resume= continues this run
-        loggers = [StageLogger(run_id=active.info.run_id, tracking_uri=mlflow.get_tracking_uri())] if tracking else []
+        def loggers(prefix: str) -> list:
+            return [StageLogger(active.info.run_id, mlflow.get_tracking_uri(), prefix)] if tracking else []
+
         if phase == "evaluate":
             trained = load_trained(model, data, trained_dir)
         else:
             trained = train_stages(cfg, data, model, run_dir, resume, loggers)
             if resume:
                 write_text_atomically(run_dir / "config.yaml", settings)
+            if tracking and trained.force_weight:
+                mlflow.log_metrics(choice_metrics(trained.force_weight))
         if phase == "train":
             if tracking:
                 mlflow.log_metrics({f"time/{stage}_s": seconds for stage, seconds in trained.seconds.items()})
@@ -350,15 +365,18 @@ def write_seeds_results(result: SeedsResult) -> None:
          "methods": {n: {k: {"mean": v.mean, "std": v.std, "n": v.n} for k, v in m.items()}
                      for n, m in summary.items()},
          "per_seed": {str(seed): {n: r.domain for n, r in run.results.items()}
-                      for seed, run in zip(result.seeds, result.runs)}}, indent=2) + "\n")
+                      for seed, run in zip(result.seeds, result.runs)},
+         **({"force_weight": {str(seed): run.force_weight for seed, run in zip(result.seeds, result.runs)}}
+            if result.runs[0].force_weight else {})}, indent=2) + "\n")
     write_text_atomically(result.run_dir / "results.md", spread_markdown(result.domain_name, counts, result.seeds,
                                                                           summary, reconstruction))
 
 
 @dataclass
 class Trained:
-    """What the evaluation needs of a training: the trained folder, the parts' latent distribution, each
-    stage's wall time and stage 2's best monitored loss."""
+    """What the evaluation needs of a training: the folder of its weights, the parts' latent distribution,
+    each stage's wall time, stage 2's best monitored loss and, where the run chose stage 1's force weight,
+    the choice (the weight and every candidate's objective)."""
 
     folder: Path
     latents: torch.Tensor
@@ -366,6 +384,7 @@ class Trained:
     index: dict[str, int]
     seconds: dict[str, float]
     objective: float | None
+    force_weight: dict[str, Any] | None = None
 
 
 def latent_codes(model: PIPEModel, data: PreparedDomain) -> tuple[torch.Tensor, torch.Tensor, dict[str, int]]:
@@ -376,22 +395,66 @@ def latent_codes(model: PIPEModel, data: PreparedDomain) -> tuple[torch.Tensor, 
 
 
 def train_stages(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, run_dir: Path, resume: bool,
-                 loggers: list) -> Trained:
-    """Both training stages, leaving the best weights in `model`; training.json records their times."""
+                 loggers: Callable[[str], list]) -> Trained:
+    """Both training stages, leaving the best weights in `model`; training.json records their times and stage
+    2's best loss. With candidate force weights (pipe.training.force_choice): once per weight into its own
+    folder, each from the run's seed, keeping the weight of the lowest best validation loss."""
+    weights, _ = force_setting(cfg)
+    if len(weights) == 1:
+        return fit_stages(weight_config(cfg, weights[0]), data, model, run_dir, resume, loggers(""))
+    if not data.splits["val"]:
+        raise PipeError(f"stages.vae.force_weight={list(weights)} chooses the weight on the validation parts, and "
+                        f"domain {data.domain.name} has none: give it validation parts, or one force weight")
+    candidates: dict[float, tuple[PIPEModel, Trained]] = {}
+    for weight in weights:
+        L.seed_everything(cfg.seed, workers=True)       # as a run of this weight alone
+        candidate = PIPEModel(*build_components(cfg), *data_scales(data.splits["train"]))
+        candidates[weight] = candidate, fit_stages(weight_config(cfg, weight), data, candidate,
+                                                   candidate_dir(run_dir, weight), resume,
+                                                   loggers(candidate_dir(run_dir, weight).name))
+    chosen = choose_weight({weight: trained.objective for weight, (_, trained) in candidates.items()}, run_dir)
+    best, trained = candidates[chosen]
+    model.load_state_dict(best.state_dict())
+    choice = {"chosen": chosen, "objectives": {f"{weight:g}": trained.objective
+                                               for weight, (_, trained) in candidates.items()}}
+    seconds = {stage: sum(run.seconds[stage] for _, run in candidates.values()) for stage in trained.seconds}
+    write_text_atomically(run_dir / TRAINING_FILE, json.dumps(
+        {"seconds": seconds, "objective": trained.objective, "force_weight": choice}, indent=2) + "\n")
+    return replace(trained, seconds=seconds, force_weight=choice)
+
+
+def fit_stages(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, folder: Path, resume: bool,
+               loggers: list) -> Trained:
+    """Both stages of one force weight into `folder`, leaving the best weights in `model`; its training.json
+    records their times and stage 2's best loss."""
     train, val = data.splits["train"], data.splits["val"]
-    seconds = {"vae": fit_vae(cfg, model.encoder, train, val, run_dir, resume, loggers).seconds}
+    seconds = {"vae": fit_vae(cfg, model.encoder, train, val, folder, resume, loggers).seconds}
     latents, logvars, index = latent_codes(model, data)
-    head = fit_head(cfg, model, latents, index, train, val, run_dir, resume, loggers)
+    head = fit_head(cfg, model, latents, index, train, val, folder, resume, loggers)
     seconds["head"] = head.seconds
-    write_text_atomically(run_dir / TRAINING_FILE, json.dumps({"seconds": seconds, "objective": head.best}, indent=2)
+    write_text_atomically(folder / TRAINING_FILE, json.dumps({"seconds": seconds, "objective": head.best}, indent=2)
                           + "\n")
-    return Trained(run_dir, latents, logvars, index, seconds, head.best)
+    return Trained(folder, latents, logvars, index, seconds, head.best)
+
+
+def choice_metrics(choice: dict[str, Any]) -> dict[str, float]:
+    """A run's choice of stage 1's force weight as MLflow metrics: the weight and each candidate's objective."""
+    return {"force_weight/chosen": choice["chosen"],
+            **{f"force_weight/objective_{weight}": objective for weight, objective in choice["objectives"].items()}}
+
+
+def weights_dir(folder: Path) -> Path:
+    """The folder of the weights a trained run keeps: its chosen force weight's (training.json), else its own."""
+    record = folder / TRAINING_FILE
+    choice = json.loads(record.read_text()).get("force_weight") if record.is_file() else None
+    return candidate_dir(folder, choice["chosen"]) if choice else folder
 
 
 def load_trained(model: PIPEModel, data: PreparedDomain, folder: Path) -> Trained:
-    """The best weights of a trained folder (stage 2's checkpoint holds the whole model) into `model`, read
-    only; the times and best loss from its training.json."""
-    best = checkpoint_dir(folder, "head") / "best.ckpt"
+    """The best weights of a trained folder (stage 2's checkpoint holds the whole model; the chosen force
+    weight's, where the run chose one) into `model`, read only; the times, best loss and choice from its
+    training.json."""
+    best = checkpoint_dir(weights_dir(folder), "head") / "best.ckpt"
     state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
     try:
         model.load_state_dict({key.removeprefix("model."): value for key, value in state.items()
@@ -402,7 +465,8 @@ def load_trained(model: PIPEModel, data: PreparedDomain, folder: Path) -> Traine
     record = folder / TRAINING_FILE
     recorded = json.loads(record.read_text()) if record.is_file() else {"seconds": {}, "objective": None}
     latents, logvars, index = latent_codes(model, data)
-    return Trained(folder, latents, logvars, index, recorded["seconds"], recorded["objective"])
+    return Trained(weights_dir(folder), latents, logvars, index, recorded["seconds"], recorded["objective"],
+                   recorded.get("force_weight"))
 
 
 def evaluate_trained(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, trained: Trained,
@@ -420,10 +484,12 @@ def evaluate_trained(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, tr
     run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, trained.latents,
                     trained.index, test, dt, results, reconstruction,
                     model_card(cfg, data, model.dynamics, band.offset), seconds, logvars=trained.logvars,
-                    objective=trained.objective, trained_dir=None if trained.folder == run_dir else trained.folder)
+                    objective=trained.objective, trained_dir=None if trained.folder == run_dir else trained.folder,
+                    force_weight=trained.force_weight)
     write_text_atomically(run_dir / "metrics.json", json.dumps(
         {"test": run.pipe.domain, "baselines": {n: r.domain for n, r in results.items() if n != "pipe"},
          "per_part": run.pipe.per_part, "reconstruction": reconstruction, "seconds": seconds,
+         **({"force_weight": trained.force_weight} if trained.force_weight else {}),
          "machine": machine_info()}, indent=2) + "\n")
     write_report(run, run_dir / "report")
     return run

@@ -94,11 +94,12 @@ class StageLogger(MLFlowLogger):
     It logs asynchronously, through MLflow's own queue and writer thread, which merges what arrived within
     MLFLOW_ASYNC_LOGGING_BUFFERING_SECONDS (default here 5 s) into one write: a synchronous write into the
     SQLite store took about 8 ms twice an epoch, which the training waited for (BENCHMARKS.md). The stage's
-    metrics are all written when it ends (`finalize`, which Lightning calls on success and on failure)."""
+    metrics are all written when it ends (`finalize`, which Lightning calls on success and on failure).
+    `prefix` tells apart the stages of each candidate force weight (pipe.training.force_choice) in one run."""
 
-    def __init__(self, run_id: str, tracking_uri: str) -> None:
+    def __init__(self, run_id: str, tracking_uri: str, prefix: str = "") -> None:
         os.environ.setdefault("MLFLOW_ASYNC_LOGGING_BUFFERING_SECONDS", "5")
-        super().__init__(run_id=run_id, tracking_uri=tracking_uri, synchronous=False)
+        super().__init__(run_id=run_id, tracking_uri=tracking_uri, synchronous=False, prefix=prefix)
 
     @rank_zero_only    # the other processes of a distributed fit hold no MLflow client
     def finalize(self, status: str = "success") -> None:

@@ -21,6 +21,7 @@ from pipe.data.prepared import PartData
 from pipe.errors import PipeError
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
+from pipe.training.force_choice import force_weights
 from pipe.training.force_signature import force_signatures
 from pipe.training.stages import HeadStage, VAEStage, check_head_loss
 from pipe.training.trainer import (
@@ -98,7 +99,7 @@ def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val:
     """Stage 1 (`cfg.stages.vae`): the encoder learns to reconstruct the training clouds (and, with
     `force_weight` > 0, to predict their parts' force signatures)."""
     stage = cfg.stages.vae
-    force_weight, bins = force_setting(cfg)
+    (force_weight,), bins = force_setting(cfg)    # a run trains its candidate weights one at a time
     signatures = force_signatures(train, val, bins) if force_weight > 0 else None
     trainer = make_trainer(cfg.trainer, run_dir, "vae", stage.epochs, bool(val), loggers, resume)
     module = VAEStage(encoder, lr=stage.lr, kl_weight=stage.kl_weight, feature_dtype=stage.feature_dtype,
@@ -108,16 +109,14 @@ def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val:
                      cloud_loader(val, batch, False, cfg.seed) if val else None, run_dir, "vae", resume)
 
 
-def force_setting(cfg: DictConfig) -> tuple[float, int]:
-    """The configured stage-1 force term, checked: its weight (0: none) and its signatures' depth bins; no term
-    for a run configured before the options existed."""
-    stage = cfg.stages.vae
-    weight, bins = stage.get("force_weight", 0.0), stage.get("force_bins", 16)
-    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or weight < 0:
-        raise PipeError(f"stages.vae.force_weight must be a number, 0 or more (0: no force term), not {weight!r}")
+def force_setting(cfg: DictConfig) -> tuple[list[float], int]:
+    """The configured stage-1 force term, checked: its weight, or the candidates a run chooses from
+    (pipe.training.force_choice; 0: no term), and its signatures' depth bins."""
+    bins = cfg.stages.vae.get("force_bins", 16)
+    weights = force_weights(cfg)
     if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
         raise PipeError(f"stages.vae.force_bins must be a whole number, 1 or more, not {bins!r}")
-    return float(weight), bins
+    return weights, bins
 
 
 def head_loss(cfg: DictConfig) -> str:
