@@ -48,7 +48,9 @@ def main(run: str, overrides: list[str]) -> None:
     pipeline.evaluate_methods = one_at_a_time
     saved = OmegaConf.load(Path(run) / "config.yaml")
     with tempfile.TemporaryDirectory() as tmp, initialize_config_module("pipe.conf", version_base="1.3"):
+        weights = OmegaConf.to_container(saved.stages.vae).get("force_weight", 0.0)   # one, or the candidates
         cfg = compose("config", overrides=[f"domain={saved.domain.name}", f"seed={saved.seed}", "phase=evaluate",
+                                           f"stages.vae.force_weight={weights}",
                                            f"paths.output_dir={tmp}/run", f"resume={Path(run).resolve()}",
                                            "trainer.progress_bar=false", "mlflow.enabled=false", *overrides])
         start = time.perf_counter()

@@ -4,7 +4,8 @@
 # conf/domain/curve.yaml, every run in MLflow, then the table and figure of `pipe report curve`.
 # The runs share one folder of identified fits (OUT/identification_fits): the oracles of the test parts and
 # gpr's fits of the training parts are computed once, not at every size and seed. It can be stopped and
-# started again: a run whose results.json exists is kept, an unfinished one is started over. FAMILIES
+# started again: a run whose results.json exists is kept, an unfinished one is continued from its
+# checkpoints (resume=) or, without any, started over. FAMILIES
 # chooses the families (default "pins rect"), e.g. to run them one after the other on separate days or
 # side by side on separate machines, and SIZES the numbers of training parts (default "5 10 20 50 100").
 # Extra arguments are Hydra overrides for every run.
@@ -27,9 +28,15 @@ for family in "${families[@]}"; do
     for count in "${sizes[@]}"; do
         run="$out/$family/train_$count"
         [ -f "$run/results.json" ] && continue
-        rm -rf "$run"
         trained=()
-        [ -n "${EVALUATE_FROM:-}" ] && trained=(phase=evaluate "resume=$EVALUATE_FROM/$family/train_$count")
+        if [ -n "${EVALUATE_FROM:-}" ]; then
+            rm -rf "$run"
+            trained=(phase=evaluate "resume=$EVALUATE_FROM/$family/train_$count")
+        elif [ -n "$(find "$run" -name '*.ckpt' -print -quit 2>/dev/null)" ]; then
+            trained=("resume=$run")
+        else
+            rm -rf "$run"
+        fi
         .venv/bin/python train.py data=family "data.generate.family=$family" domain=curve \
             "domain.train_count=$count" 'seeds=[0,1,2]' "hydra.run.dir=$run" trainer.progress_bar=false \
             "evaluation.identification.cache=$fits" "${trained[@]}" "$@"

@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from test_training import run_train
 
 from pipe.errors import PipeError
-from pipe.pipeline import run_domain
+from pipe.pipeline import run_domain, run_seeds
 from pipe.training.force_choice import choose_weight, force_weights
 
 ALONE = ("evaluation.baselines=[nearest]", "stages.vae.force_bins=4")
@@ -54,6 +54,7 @@ def test_a_run_with_two_weights_keeps_the_one_a_run_of_it_alone_scores_lower_on_
     for weight, single in alone.items():
         record = json.loads((out / f"force_weight_{weight}/training.json").read_text())
         assert record["objective"] == single.objective
+        assert OmegaConf.load(out / f"force_weight_{weight}/config.yaml").stages.vae.force_weight == weight
         kept, own = best_head(out / f"force_weight_{weight}"), best_head(tmp_path / f"alone_{weight}")
         assert kept.keys() == own.keys() and all(torch.equal(kept[key], own[key]) for key in kept)
     chosen = min(alone, key=lambda weight: alone[weight].objective)
@@ -112,3 +113,16 @@ def test_a_choice_without_validation_parts_is_refused_before_stage_one(tiny_data
     assert "stages.vae.force_weight=[0.0, 100.0] chooses the weight on the validation parts, and domain tiny has " \
            "none" in said
     assert not list(tmp_path.glob("**/*.ckpt"))
+
+
+def test_seeds_trained_with_a_choice_are_resumed_seed_by_seed(tiny_data, tmp_path):
+    trained = run_domain(smoke_config(tiny_data, tmp_path / "seed_0", "mlflow.enabled=false", *ALONE, "phase=train",
+                                      "seed=0", "stages.vae.force_weight=[0,100]"))
+    result = run_seeds(smoke_config(tiny_data, tmp_path, "mlflow.enabled=false", *ALONE, "seeds=[0,1]",
+                                    f"resume={tmp_path}", "stages.vae.force_weight=[0,100]"))
+    assert [run.force_weight["chosen"] for run in result.runs][0] == json.loads(
+        (tmp_path / "seed_0/training.json").read_text())["force_weight"]["chosen"]
+    assert result.runs[0].objective == trained.objective      # seed 0 resumed, not trained again
+    assert sorted(path.name for path in (tmp_path / "seed_1").glob("force_weight_*")) == ["force_weight_0",
+                                                                                         "force_weight_100"]
+    assert json.loads((tmp_path / "results.json").read_text())["force_weight"]["1"] == result.runs[1].force_weight

@@ -58,6 +58,7 @@ from pipe.training.fit import check_varying_force, fit_head, fit_vae, force_sett
 from pipe.training.force_choice import (
     CANDIDATES_GLOB,
     candidate_dir,
+    candidate_dirs,
     check_resumed_layout,
     choose_weight,
     weight_config,
@@ -308,7 +309,8 @@ def seed_config(cfg: DictConfig, seed: int, out: Path, trained: Path) -> DictCon
     with open_dict(sub):
         sub.seed, sub.seeds = seed, None
         sub.paths.output_dir = str(folder)
-        resumable = cfg.resume is not None and (trained_folder / "checkpoints").is_dir()
+        resumable = cfg.resume is not None and ((trained_folder / "checkpoints").is_dir()
+                                                or bool(candidate_dirs(trained_folder)))
         sub.resume = str(trained_folder) if resumable or cfg.get("phase") == "evaluate" else None
     return sub
 
@@ -408,10 +410,11 @@ def train_stages(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, run_di
     candidates: dict[float, tuple[PIPEModel, Trained]] = {}
     for weight in weights:
         L.seed_everything(cfg.seed, workers=True)       # as a run of this weight alone
-        candidate = PIPEModel(*build_components(cfg), *data_scales(data.splits["train"]))
-        candidates[weight] = candidate, fit_stages(weight_config(cfg, weight), data, candidate,
-                                                   candidate_dir(run_dir, weight), resume,
-                                                   loggers(candidate_dir(run_dir, weight).name))
+        candidate, single, folder = (PIPEModel(*build_components(cfg), *data_scales(data.splits["train"])),
+                                     weight_config(cfg, weight), candidate_dir(run_dir, weight))
+        candidates[weight] = candidate, fit_stages(single, data, candidate, folder, resume, loggers(folder.name))
+        # a run folder of that weight alone: phase=evaluate resume=<it> and the experiment scripts take it
+        write_text_atomically(folder / "config.yaml", OmegaConf.to_yaml(single, resolve=True))
     chosen = choose_weight({weight: trained.objective for weight, (_, trained) in candidates.items()}, run_dir)
     best, trained = candidates[chosen]
     model.load_state_dict(best.state_dict())
