@@ -126,3 +126,13 @@ def test_seeds_trained_with_a_choice_are_resumed_seed_by_seed(tiny_data, tmp_pat
     assert sorted(path.name for path in (tmp_path / "seed_1").glob("force_weight_*")) == ["force_weight_0",
                                                                                          "force_weight_100"]
     assert json.loads((tmp_path / "results.json").read_text())["force_weight"]["1"] == result.runs[1].force_weight
+
+
+def test_train_py_prints_each_runs_chosen_weight_and_the_candidates_objectives():
+    from pipe.app import force_choices
+
+    choice = {"chosen": 1000.0, "objectives": {"0": 0.21579, "1000": 0.20989}}
+    assert force_choices({None: choice}) == "1000 (objective 0: 0.2158; 1000: 0.2099)"
+    assert force_choices({0: choice, 2: {"chosen": 0.0, "objectives": {"0": 0.2, "1000": 0.25}}}) == \
+        "seed 0: 1000 (objective 0: 0.2158; 1000: 0.2099), seed 2: 0 (objective 0: 0.2; 1000: 0.25)"
+    assert force_choices({}) == ""
