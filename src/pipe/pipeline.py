@@ -58,9 +58,9 @@ from pipe.training.fit import check_varying_force, fit_head, fit_vae, force_sett
 from pipe.training.force_choice import (
     CANDIDATES_GLOB,
     candidate_dir,
-    candidate_dirs,
     check_resumed_layout,
     choose_weight,
+    holds_training,
     weight_config,
 )
 from pipe.training.trainer import checkpoint_dir
@@ -219,7 +219,7 @@ def check_phase(cfg: DictConfig) -> str:
 def check_trained(cfg: DictConfig, folder: Path) -> None:
     """Refuse to evaluate a folder whose stages have not run to their configured epochs (the chosen force
     weight's, where the run chose one)."""
-    folder = weights_dir(folder)
+    folder = weights_dir(folder, training_record(folder))
     for stage in STAGES:
         last, best = checkpoint_dir(folder, stage) / "last.ckpt", checkpoint_dir(folder, stage) / "best.ckpt"
         if not (last.is_file() and best.is_file()):
@@ -309,8 +309,7 @@ def seed_config(cfg: DictConfig, seed: int, out: Path, trained: Path) -> DictCon
     with open_dict(sub):
         sub.seed, sub.seeds = seed, None
         sub.paths.output_dir = str(folder)
-        resumable = cfg.resume is not None and ((trained_folder / "checkpoints").is_dir()
-                                                or bool(candidate_dirs(trained_folder)))
+        resumable = cfg.resume is not None and holds_training(trained_folder)
         sub.resume = str(trained_folder) if resumable or cfg.get("phase") == "evaluate" else None
     return sub
 
@@ -446,10 +445,16 @@ def choice_metrics(choice: dict[str, Any]) -> dict[str, float]:
             **{f"force_weight/objective_{weight}": objective for weight, objective in choice["objectives"].items()}}
 
 
-def weights_dir(folder: Path) -> Path:
-    """The folder of the weights a trained run keeps: its chosen force weight's (training.json), else its own."""
+def training_record(folder: Path) -> dict[str, Any]:
+    """A trained folder's training.json (stage times, stage 2's best loss, the force weight it chose); empty
+    values for a folder trained before the file existed."""
     record = folder / TRAINING_FILE
-    choice = json.loads(record.read_text()).get("force_weight") if record.is_file() else None
+    return json.loads(record.read_text()) if record.is_file() else {"seconds": {}, "objective": None}
+
+
+def weights_dir(folder: Path, record: dict[str, Any]) -> Path:
+    """The folder of the weights a trained run keeps: its chosen force weight's, else its own."""
+    choice = record.get("force_weight")
     return candidate_dir(folder, choice["chosen"]) if choice else folder
 
 
@@ -457,7 +462,9 @@ def load_trained(model: PIPEModel, data: PreparedDomain, folder: Path) -> Traine
     """The best weights of a trained folder (stage 2's checkpoint holds the whole model; the chosen force
     weight's, where the run chose one) into `model`, read only; the times, best loss and choice from its
     training.json."""
-    best = checkpoint_dir(weights_dir(folder), "head") / "best.ckpt"
+    recorded = training_record(folder)
+    weights = weights_dir(folder, recorded)
+    best = checkpoint_dir(weights, "head") / "best.ckpt"
     state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
     try:
         model.load_state_dict({key.removeprefix("model."): value for key, value in state.items()
@@ -465,10 +472,8 @@ def load_trained(model: PIPEModel, data: PreparedDomain, folder: Path) -> Traine
     except RuntimeError as exc:
         raise PipeError(f"does not fit this run's encoder, head and model (trained with other settings?): "
                         f"{str(exc).splitlines()[0]}", best) from None
-    record = folder / TRAINING_FILE
-    recorded = json.loads(record.read_text()) if record.is_file() else {"seconds": {}, "objective": None}
     latents, logvars, index = latent_codes(model, data)
-    return Trained(weights_dir(folder), latents, logvars, index, recorded["seconds"], recorded["objective"],
+    return Trained(weights, latents, logvars, index, recorded["seconds"], recorded["objective"],
                    recorded.get("force_weight"))
 
 

@@ -53,6 +53,11 @@ def candidate_dirs(run_dir: Path) -> list[Path]:
     return sorted(folder for folder in run_dir.glob(f"{CANDIDATE_PREFIX}*") if folder.is_dir())
 
 
+def holds_training(folder: Path) -> bool:
+    """Whether a run folder holds a training to resume: its own checkpoints, or its candidates' folders."""
+    return (folder / "checkpoints").is_dir() or bool(candidate_dirs(folder))
+
+
 def choose_weight(objectives: dict[float, float | None], where: Path) -> float:
     """The candidate whose stage 2 reached the lowest best validation loss (the first listed on a tie)."""
     missing = [f"{weight:g}" for weight, objective in objectives.items() if objective is None]
@@ -66,7 +71,7 @@ def check_resumed_layout(folder: Path, choosing: bool) -> None:
     """Refuse to resume (or evaluate) a folder without checkpoints, or one trained with one force weight by a
     run that chooses among candidates, or the other way round: which it was trained with, and what to do."""
     single, candidates = (folder / "checkpoints").is_dir(), candidate_dirs(folder)
-    if not single and not candidates:
+    if not holds_training(folder):
         raise PipeError("resume= names a folder without checkpoints; give the output folder of an earlier run", folder)
     if choosing and not candidates:
         raise PipeError("was trained with one stage-1 force weight, and this run chooses among several: give it "
