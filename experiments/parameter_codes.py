@@ -10,6 +10,11 @@ from the run's own initial weights, as `stage2_variants.py`'s `default`, once pe
             pool), reduced to the code's size by a principal component analysis over the training parts, each
             component standardised over them: a code that keeps what the pooled features hold (taper, lead-in,
             contacts: code_probe.py --layer features), from the same trained encoder
+  sections  no encoder: the cloud's cross-section from its mating end (pipe.model.sections, code.sections:
+            the part's length and the half-widths of the points within reaches of the tip, as logs,
+            standardised over the training parts): a code made by hand that sees a lead-in and a taper
+  codes+sections  both side by side in a head of twice the latent size (a fresh head of that width, seeded
+            with the run's seed; code.sections builds one of the latent size plus the sections')
 Each is padded with zeros to the latent size, so the head is the run's own and `nearest` reads the training
 part nearest in that space. A head on `geometry` shows how far a perfect geometry encoder would take PIPE;
 `physics` minus `geometry` is what no geometry can give; `--without detents` leaves parameters out of both
@@ -36,12 +41,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
+from pipe.model.interfaces import ParameterHead
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.sections import SECTION_SIZE, SectionCode
+from pipe.pipeline import build_plugin
 from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.families import family_parts
 from pipe.training.fit import fit_head
 
-KINDS = ("codes", "geometry", "physics", "features")
+KINDS = ("codes", "geometry", "physics", "features", "sections", "codes+sections")
 
 
 def shape_parameters(part: Plug | Pin) -> dict[str, float]:
@@ -108,6 +116,14 @@ def principal_codes(features: torch.Tensor, train_count: int, width: int) -> tor
     return codes
 
 
+def section_codes(clouds: torch.Tensor, train_count: int, width: int) -> torch.Tensor:
+    """Each cloud's cross-section as code.sections gives it the head (standardised over the first
+    `train_count`, the training parts), zeros after, as a code of `width`."""
+    codes = torch.zeros(len(clouds), width)
+    codes[:, :SECTION_SIZE] = SectionCode.fitted(clouds[:train_count])(clouds)
+    return codes
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
@@ -128,7 +144,6 @@ def main() -> None:
         ordered = train + val + test
         clouds = stack_clouds(ordered)
         index = {p.name: i for i, p in enumerate(ordered)}
-        model = PIPEModel(encoder, head, dynamics, *data_scales(train))
         generator = generator_parts(cfg)
         known = set(shape_parameters(generator[train[0].name]) | hidden_parameters(generator[train[0].name]))
         if unknown := set(without) - known:
@@ -136,8 +151,19 @@ def main() -> None:
                              f"({', '.join(sorted(known))})")
         for kind in kinds:
             head.load_state_dict(initial)
-            if kind == "codes":
+            model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+            if kind == "codes+sections":
+                width = head.latent_dim
+                torch.manual_seed(cfg.seed)
+                wide = build_plugin("head", cfg.head, ParameterHead, latent_dim=2 * width,
+                                    num_parameters=len(dynamics.parameter_names))
+                model = PIPEModel(encoder, wide, dynamics, *data_scales(train))
+                sections = section_codes(clouds, len(train), width)
+                latents = torch.cat([model.latent_distribution(clouds)[0], sections], dim=1)
+            elif kind == "codes":
                 latents = model.latent_distribution(clouds)[0]
+            elif kind == "sections":
+                latents = section_codes(clouds, len(train), head.latent_dim)
             elif kind == "features":
                 latents = principal_codes(pooled_features(encoder, clouds), len(train), head.latent_dim)
             else:

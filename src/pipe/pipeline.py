@@ -42,6 +42,7 @@ from pipe.model import ltv
 from pipe.model.card import BandCard, ModelCard
 from pipe.model.interfaces import DynamicModel, ParameterHead
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.sections import SECTION_SIZE, SectionCode
 from pipe.model.uncertainty import BandSettings
 from pipe.model.vae import PointCloudVAE
 from pipe.synthetic import generate_dataset
@@ -183,13 +184,33 @@ def build_plugin(kind: str, node: DictConfig, base: type, **kwargs: Any) -> Any:
     return obj
 
 
+def uses_sections(cfg: DictConfig) -> bool:
+    """Whether the head reads the cloud's cross-section beside the encoder's code (`code.sections`; runs
+    configured before the option existed did not)."""
+    return bool(OmegaConf.select(cfg, "code.sections", default=False))
+
+
 def build_components(cfg: DictConfig) -> tuple[PointCloudVAE, ParameterHead, DynamicModel]:
-    """The configured encoder, head and dynamic model, wired to each other's sizes."""
+    """The configured encoder, head and dynamic model, wired to each other's sizes (the head's input: the
+    encoder's code, and the cross-section's with `code.sections`)."""
     encoder = build_plugin("encoder", cfg.encoder, PointCloudVAE, num_points=cfg.data.points)
     dynamics = build_plugin("model", cfg.model, DynamicModel)
-    head = build_plugin("head", cfg.head, ParameterHead, latent_dim=encoder.latent_dim,
+    head = build_plugin("head", cfg.head, ParameterHead,
+                        latent_dim=encoder.latent_dim + (SECTION_SIZE if uses_sections(cfg) else 0),
                         num_parameters=len(dynamics.parameter_names))
     return encoder, head, dynamics
+
+
+def build_model(cfg: DictConfig, data: PreparedDomain,
+                components: tuple[PointCloudVAE, ParameterHead, DynamicModel] | None = None) -> PIPEModel:
+    """PIPE of the configured (or the given) components, scaled by the domain's training parts, with their
+    cross-section's standardisation where `code.sections` asks for it."""
+    train = data.splits["train"]
+    if uses_sections(cfg) and len(train) < 2:
+        raise PipeError(f"code.sections standardises the cross-section over the training parts, and domain "
+                        f"{data.domain.name} has {len(train)}: give it two or more, or set code.sections=false")
+    sections = SectionCode.fitted(stack_clouds(train)) if uses_sections(cfg) else None
+    return PIPEModel(*(components or build_components(cfg)), *data_scales(train), sections=sections)
 
 
 def model_card(cfg: DictConfig, data: PreparedDomain, dynamics: DynamicModel, band_offset: float) -> ModelCard:
@@ -268,7 +289,7 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     run_name = f"{data.domain.name} {names['encoder']} {names['model']}"
     id_file = trained_dir / RUN_ID_FILE
     resume_id = id_file.read_text().strip() if resume and tracking and id_file.is_file() else None
-    model = PIPEModel(encoder, head, dynamics, *data_scales(data.splits["train"]))
+    model = build_model(cfg, data, (encoder, head, dynamics))
     with tracked_run(cfg, run_name, tags, resume_id, id_file, evaluating=phase == "evaluate") if tracking \
             else nullcontext() as active:
         if tracking and phase != "evaluate":
@@ -409,8 +430,8 @@ def train_stages(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, run_di
     candidates: dict[float, tuple[PIPEModel, Trained]] = {}
     for weight in weights:
         L.seed_everything(cfg.seed, workers=True)       # as a run of this weight alone
-        candidate, single, folder = (PIPEModel(*build_components(cfg), *data_scales(data.splits["train"])),
-                                     weight_config(cfg, weight), candidate_dir(run_dir, weight))
+        candidate, single, folder = (build_model(cfg, data), weight_config(cfg, weight),
+                                     candidate_dir(run_dir, weight))
         candidates[weight] = candidate, fit_stages(single, data, candidate, folder, resume, loggers(folder.name))
         # a run folder of that weight alone: phase=evaluate resume=<it> and the experiment scripts take it
         write_text_atomically(folder / "config.yaml", OmegaConf.to_yaml(single, resolve=True))

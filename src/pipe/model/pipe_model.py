@@ -12,6 +12,7 @@ from torch import nn
 from pipe.data.batches import TrialBatch
 from pipe.model.interfaces import DynamicModel, ParameterHead, ParameterProfile
 from pipe.model.losses import FORCE_LOSSES
+from pipe.model.sections import SectionCode
 from pipe.model.vae import PointCloudVAE
 
 
@@ -27,30 +28,34 @@ class ScaledProfile:
 
 
 class PIPEModel(nn.Module):
-    """With `encoder` None: the head and the dynamic model alone, what a system identification simulates."""
+    """With `encoder` None: the head and the dynamic model alone, what a system identification simulates. With
+    `sections` (code.sections), the code the head reads is the encoder's followed by the cloud's cross-section."""
 
     def __init__(self, encoder: PointCloudVAE | None, head: ParameterHead, dynamics: DynamicModel,
-                 force_scale: float = 1.0, depth_scale: float = 1.0) -> None:
+                 force_scale: float = 1.0, depth_scale: float = 1.0, sections: SectionCode | None = None) -> None:
         super().__init__()
-        self.encoder, self.head, self.dynamics = encoder, head, dynamics
+        self.encoder, self.head, self.dynamics, self.sections = encoder, head, dynamics, sections
         self.register_buffer("theta_scale", dynamics.parameter_scales(force_scale, depth_scale).float())
 
     def with_head(self, head: ParameterHead, theta_scale: torch.Tensor | None = None) -> PIPEModel:
         """The same encoder and dynamic model with another head (e.g. one identified per part), and the same
         parameter scales unless others are given."""
-        other = PIPEModel(self.encoder, head, self.dynamics)
+        other = PIPEModel(self.encoder, head, self.dynamics, sections=self.sections)
         other.theta_scale = (self.theta_scale if theta_scale is None else theta_scale).float().clone()
         return other
 
     @torch.no_grad()
     def latent_distribution(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The encoder's latent mean and log-variance (B, latent) of clouds (B, n, 3) in mm; the encoder is
-        frozen after stage 1."""
+        """The latent mean and log-variance (B, latent) of clouds (B, n, 3) in mm: the encoder's (frozen after
+        stage 1), then the cross-section's where the model has one, with no spread (log-variance -inf)."""
         was_training = self.encoder.training
         self.encoder.eval()
         mu, logvar = self.encoder.encode(points)
         self.encoder.train(was_training)
-        return mu, logvar
+        if self.sections is None:
+            return mu, logvar
+        sections = self.sections(points).to(mu.dtype)
+        return torch.cat([mu, sections], dim=1), torch.cat([logvar, torch.full_like(sections, -torch.inf)], dim=1)
 
     def latent(self, points: torch.Tensor) -> torch.Tensor:
         """The mean latent code (B, latent) of clouds (B, n, 3) in mm, what PIPE predicts from."""
