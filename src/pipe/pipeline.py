@@ -55,7 +55,7 @@ from pipe.tracking import (
     parent_run,
     tracked_run,
 )
-from pipe.training.fit import check_varying_force, fit_head, fit_vae, force_setting, head_loss
+from pipe.training.fit import check_varying_force, fit_head, fit_vae, force_setting, head_loss, weight_differences
 from pipe.training.force_choice import (
     CANDIDATES_GLOB,
     candidate_dir,
@@ -487,12 +487,11 @@ def load_trained(model: PIPEModel, data: PreparedDomain, folder: Path) -> Traine
     weights = weights_dir(folder, recorded)
     best = checkpoint_dir(weights, "head") / "best.ckpt"
     state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
-    try:
-        model.load_state_dict({key.removeprefix("model."): value for key, value in state.items()
-                               if key.startswith("model.")})
-    except RuntimeError as exc:
-        raise PipeError(f"does not fit this run's encoder, head and model (trained with other settings?): "
-                        f"{str(exc).splitlines()[0]}", best) from None
+    saved = {key.removeprefix("model."): value for key, value in state.items() if key.startswith("model.")}
+    if differing := weight_differences(saved, model.state_dict()):
+        raise PipeError(f"does not fit this run's encoder, head and model: the weights differ in {differing}; "
+                        f"evaluate it with the settings it was trained with (its folder's config.yaml)", best)
+    model.load_state_dict(saved)
     latents, logvars, index = latent_codes(model, data)
     return Trained(weights, latents, logvars, index, recorded["seconds"], recorded["objective"],
                    recorded.get("force_weight"))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import NamedTuple
 
@@ -73,18 +74,30 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
     return StageFit(time.perf_counter() - start, float(score) if score is not None else None)
 
 
-def check_resumable(module: L.LightningModule, checkpoint: Path, stage: str) -> None:
-    """Refuse to resume a stage from a checkpoint whose weights this run's settings do not make (another force
-    term, encoder or latent size): a message naming it and what differs, not Lightning's traceback."""
-    saved = torch.load(checkpoint, map_location="cpu", weights_only=False, mmap=True)["state_dict"]
-    own = module.state_dict()
+def weight_differences(saved: Mapping[str, torch.Tensor], own: Mapping[str, torch.Tensor]) -> str | None:
+    """What a checkpoint's weights and a module's do not share or shape alike (the first four named and a count
+    of the others, and the code.sections setting the checkpoint was trained with where that is what differs),
+    None when they fit."""
     differing = sorted(saved.keys() ^ own.keys()) + sorted(
         key for key in saved.keys() & own.keys() if saved[key].shape != own[key].shape)
-    if differing:
-        shown = ", ".join(differing[:4]) + (f" and {len(differing) - 4} more" if len(differing) > 4 else "")
+    if not differing:
+        return None
+    shown = ", ".join(differing[:4]) + (f" and {len(differing) - 4} more" if len(differing) > 4 else "")
+    sections = [any(".sections." in f".{key}" for key in keys) for keys in (saved, own)]
+    if sections[0] != sections[1]:
+        shown += f" (it was trained with code.sections={str(sections[0]).lower()})"
+    return shown
+
+
+def check_resumable(module: L.LightningModule, checkpoint: Path, stage: str) -> None:
+    """Refuse to resume a stage from a checkpoint whose weights this run's settings do not make (another force
+    term, encoder, latent size or code.sections): a message naming it and what differs, not Lightning's
+    traceback."""
+    saved = torch.load(checkpoint, map_location="cpu", weights_only=False, mmap=True)["state_dict"]
+    if differing := weight_differences(saved, module.state_dict()):
         raise PipeError(f"was trained with other settings than this run's: the weights of stage {stage!r} differ in "
-                        f"{shown}; resume with the settings it was trained with (the run folder's config.yaml), or "
-                        f"train into another folder", checkpoint)
+                        f"{differing}; resume with the settings it was trained with (the run folder's config.yaml), "
+                        f"or train into another folder", checkpoint)
 
 
 def logged_minimum(run_dir: Path, stage: str, column: str) -> float | None:
