@@ -9,7 +9,9 @@ the training or the test parts is left out (R^2 needs a spread: read it on the l
 parts, not on a paper domain's 1 to 3). Rows (per run: each parameter's R^2 on the test parts) are printed and
 appended to OUT as JSON lines; `--table` gives each parameter's R^2 as mean ± std over the seeds. With
 `--layer features` the probe reads the encoder's pooled features (PointNet's 512 channels after the max pool,
-before the two small networks that map them to the code's mean and log-variance) instead of the codes. Usage:
+before the two small networks that map them to the code's mean and log-variance) instead of the codes; with
+`--layer sections` the cloud's cross-section (code.sections: pipe.model.sections, standardised over the
+training parts). Usage:
   python experiments/code_probe.py OUT.jsonl runs/curve_defaults/rect/train_100/seed_0 ... [--layer features]
   python experiments/code_probe.py OUT.jsonl --table
 """
@@ -31,6 +33,7 @@ from summarise import domain_of, spread
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.sections import SectionCode
 
 PENALTIES = np.logspace(-4, 3, 15)
 
@@ -46,14 +49,18 @@ def probe(codes_train: np.ndarray, codes_test: np.ndarray, values_train: np.ndar
 
 
 def run_row(run_dir: Path, layer: str) -> dict:
-    """Each parameter's R^2 on the run's test parts, from its encoder's codes or pooled features (`layer`)."""
+    """Each parameter's R^2 on the run's test parts, from its encoder's codes, its pooled features or the
+    clouds' cross-sections (`layer`)."""
     cfg, data, (encoder, head, dynamics) = load_run(run_dir)
     load_encoder(encoder, run_dir)
     train, test = data.splits["train"], data.splits["test"]
     model = PIPEModel(encoder, head, dynamics, *data_scales(train))
     clouds = stack_clouds(train + test)
     with torch.no_grad():
-        read = model.latent_distribution(clouds)[0] if layer == "codes" else pooled_features(encoder, clouds)
+        if layer == "sections":
+            read = SectionCode.fitted(stack_clouds(train))(clouds)
+        else:
+            read = model.latent_distribution(clouds)[0] if layer == "codes" else pooled_features(encoder, clouds)
     codes = read.double().numpy()
     generator = generator_parts(cfg)
     rows = [shape_parameters(generator[p.name]) | hidden_parameters(generator[p.name]) for p in train + test]
@@ -82,7 +89,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to (read with --table)")
     ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
-    ap.add_argument("--layer", choices=("codes", "features"), default="codes", help="what the probe reads")
+    ap.add_argument("--layer", choices=("codes", "features", "sections"), default="codes",
+                    help="what the probe reads")
     ap.add_argument("--table", action="store_true", help="summarise OUT's rows instead of running")
     args = ap.parse_args()
     if args.table:

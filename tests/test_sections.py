@@ -12,7 +12,14 @@ from conftest import smoke_config
 
 from pipe.data.batches import stack_clouds
 from pipe.errors import PipeError
-from pipe.model.sections import LENGTH_FRACTIONS, SECTION_SIZE, TIP_REACHES_MM, SectionCode, section_descriptor
+from pipe.model.sections import (
+    LENGTH_FRACTIONS,
+    MIN_SPREAD,
+    SECTION_SIZE,
+    TIP_REACHES_MM,
+    SectionCode,
+    section_descriptor,
+)
 from pipe.model.uncertainty import BandSettings, latent_draws
 from pipe.pipeline import build_components, build_model, load_domain, run_domain
 
@@ -40,17 +47,16 @@ def test_a_quarter_turn_about_the_axis_or_a_shift_along_it_changes_nothing():
     assert torch.allclose(section_descriptor(turned[None]), section_descriptor(pin[None]))
 
 
-def test_the_training_parts_are_standardised_and_what_they_do_not_vary_is_zero_for_every_part():
+def test_the_training_parts_are_standardised_and_a_spread_below_the_clouds_resolution_is_raised_to_it():
     base = stepped_pin()
     train = torch.stack([base * torch.tensor([s, s, 1.0]) for s in (0.8, 1.0, 1.3)])   # widths vary, length not
     code = SectionCode.fitted(train)
     codes = code(train)
-    varied = code.varied
-    assert not varied[0] and varied[1:].all()            # the length is the same in all three
-    assert torch.allclose(codes[:, varied].mean(0), torch.zeros(int(varied.sum())), atol=1e-6)
-    assert torch.allclose(codes[:, varied].std(0), torch.ones(int(varied.sum())), atol=1e-6)
+    assert torch.allclose(codes[:, 1:].mean(0), torch.zeros(SECTION_SIZE - 1), atol=1e-6)
+    assert torch.allclose(codes[:, 1:].std(0), torch.ones(SECTION_SIZE - 1), atol=1e-6)
+    assert torch.equal(codes[:, 0], torch.zeros(3))      # the length is the same in all three
     longer = (base * torch.tensor([1.0, 1.0, 2.0]))[None]
-    assert code(longer)[0, 0].item() == 0.0              # a length the training parts never varied says nothing
+    assert code(longer)[0, 0].item() == pytest.approx(math.log(2.0) / MIN_SPREAD, rel=1e-6)
     assert codes.dtype == torch.float32
     with pytest.raises(ValueError, match="at least 2 training parts"):
         SectionCode.fitted(train[:1])
@@ -89,8 +95,8 @@ def test_a_folder_trained_without_sections_is_evaluated_only_with_that_setting(t
     again = run_domain(smoke_config(tiny_data, tmp_path / "again", "mlflow.enabled=false", "code.sections=false",
                                     "evaluation.baselines=[nearest]", "phase=evaluate", f"resume={trained}"))
     assert again.pipe.domain == plain.pipe.domain
-    with pytest.raises(PipeError, match=r"differ in sections.mean, sections.std, sections.varied, "
-                                        r"head.trunk.0.weight \(it was trained with code.sections=false\)"):
+    with pytest.raises(PipeError, match=r"differ in sections.mean, sections.std, head.trunk.0.weight "
+                                        r"\(it was trained with code.sections=false\)"):
         run_domain(smoke_config(tiny_data, tmp_path / "other", "mlflow.enabled=false", "phase=evaluate",
                                 f"resume={trained}"))
     with pytest.raises(PipeError, match=r"it was trained with code.sections=false\); resume with the settings"):

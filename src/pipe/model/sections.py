@@ -2,7 +2,7 @@
 
 The encoder's 32 numbers keep what reconstructing the cloud needs and lose the small features that shape the
 insertion force: a pin's lead-in and taper are read from them with R^2 0.49 and 0.19, from this descriptor
-with 0.95 and 0.83 (docs/experiments.md, "The cloud's cross-section beside the code"). It is the part's length
+with 0.96 and 0.94 (docs/experiments.md, "The cloud's cross-section beside the code"). It is the part's length
 and, for reaches from its lowest point (the mating end: parts are inserted along -z), the half-widths of the
 points within that reach, as logs. Standardised over the training parts, it is appended to the encoder's code;
 it has no spread, so PIPE's band draws nothing for it.
@@ -17,6 +17,8 @@ TIP_REACHES_MM = (0.02, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)   # from the mating 
 LENGTH_FRACTIONS = (0.25, 0.5, 0.75, 1.0)                     # of the part's length: tapers, shells, bodies
 SECTION_SIZE = 1 + 2 * (len(TIP_REACHES_MM) + len(LENGTH_FRACTIONS))
 MIN_WIDTH_MM = 1e-3          # a reach holding a single point on the axis has no width; its log is floored here
+MIN_SPREAD = 0.05            # of a log: 5 % of a size, about the spacing of 1024 points on a part; a smaller
+                             #   spread over the training parts is sampling noise, not geometry
 
 
 def section_descriptor(points: torch.Tensor) -> torch.Tensor:
@@ -37,14 +39,14 @@ def section_descriptor(points: torch.Tensor) -> torch.Tensor:
 
 
 class SectionCode(nn.Module):
-    """Clouds -> their `section_descriptor` standardised by the training parts' mean and spread; a value the
-    training parts do not vary is 0 for every part (it tells the head nothing it could have learned)."""
+    """Clouds -> their `section_descriptor` standardised by the training parts' mean and spread, a spread below
+    MIN_SPREAD raised to it (so what the training parts do not vary stays near 0 for them, and a part that
+    differs there is not magnified by sampling noise)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.register_buffer("mean", torch.zeros(SECTION_SIZE, dtype=torch.float64))
         self.register_buffer("std", torch.ones(SECTION_SIZE, dtype=torch.float64))
-        self.register_buffer("varied", torch.ones(SECTION_SIZE, dtype=torch.bool))
 
     @classmethod
     def fitted(cls, train_points: torch.Tensor) -> SectionCode:
@@ -53,11 +55,9 @@ class SectionCode(nn.Module):
             raise ValueError(f"the sections' spread needs at least 2 training parts, got {len(train_points)}")
         code = cls()
         values = section_descriptor(train_points)
-        code.mean, code.std = values.mean(0), values.std(0)
-        code.varied = code.std > 1e-9
+        code.mean, code.std = values.mean(0), values.std(0).clamp_min(MIN_SPREAD)
         return code
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Codes (B, SECTION_SIZE), float32, of clouds (B, n, 3) in mm."""
-        standardised = (section_descriptor(points) - self.mean) / torch.where(self.varied, self.std, 1.0)
-        return torch.where(self.varied, standardised, 0.0).float()
+        return ((section_descriptor(points) - self.mean) / self.std).float()
