@@ -95,8 +95,8 @@ def test_a_batch_of_meshes_predicts_what_each_mesh_alone_does(trained_run, real_
     for mesh, together in zip(meshes, batch):
         alone = predict_with(trained_run.model, trained_run.card, cfg, [mesh])[0]
         assert together.mesh == mesh and together.notes == alone.notes
-        for field in ("force", "theta", "force_band", "theta_band"):
-            np.testing.assert_allclose(getattr(together, field), getattr(alone, field), rtol=1e-5, atol=1e-5)
+        for field in ("force", "theta", "force_band", "theta_band"):   # float32 sums of another batch size
+            np.testing.assert_allclose(getattr(together, field), getattr(alone, field), rtol=1e-4, atol=1e-4)
     assert not np.allclose(batch[0].force, batch[1].force)      # three parts, three predictions
 
 

@@ -16,6 +16,7 @@ from conftest import MEANPOOL_ENCODER, ROOT, TINY_DOMAIN, smoke_config
 from conftest import compose_config as config
 from omegaconf import OmegaConf
 
+from pipe.model.sections import SECTION_SIZE
 from pipe.pipeline import build_components, run_domain
 
 
@@ -26,13 +27,13 @@ def test_every_combination_composes_and_builds(encoder, model, domain):
     cfg = config([f"encoder={encoder}", "head=gaussian", f"model={model}", f"domain={domain}",
                   "paths.output_dir=unused"])
     enc, head, dyn = build_components(cfg)
-    assert enc.latent_dim == 32 and head.latent_dim == 32
+    assert enc.latent_dim == 32 and head.latent_dim == 32 + SECTION_SIZE     # the code, then the cross-section
     assert head.num_parameters == len(dyn.parameter_names) == (4 if model == "mds2" else 3)
     cloud = torch.randn(2, cfg.data.points, 3)
     assert enc(cloud).recon.shape == cloud.shape
 
 
-def test_the_defaults_are_the_papers_values_but_stage_2s_loss_the_heads_width_and_stage_1s_force_term():
+def test_the_defaults_are_the_papers_values_but_stage_2s_loss_the_heads_width_stage_1s_force_term_and_sections():
     cfg = config(["paths.output_dir=unused"])
     assert (cfg.encoder.latent_dim, cfg.head.num_local_models) == (32, 10)
     assert cfg.head.hidden == 64           # chosen by cross-validation; the paper does not state it (128 before)
@@ -43,6 +44,8 @@ def test_the_defaults_are_the_papers_values_but_stage_2s_loss_the_heads_width_an
     # the paper's stage 2 but for its loss: the per-trial normalised error, chosen by cross-validation
     # (docs/experiments.md); experiment=paper restores the paper's pooled squared error
     assert dict(cfg.stages.head) == {"epochs": 100, "batch_size": 10, "lr": 2e-4, "loss": "nmse"}
+    # the head reads the cloud's cross-section beside the code, kept on the validation parts (docs/experiments.md)
+    assert cfg.code.sections is True
     assert (cfg.domain.name, cfg.encoder._target_.endswith("PointNetVAE"), cfg.model._target_.endswith("MDS2")) \
         == ("conn", True, True)
 
