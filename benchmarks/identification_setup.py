@@ -36,7 +36,7 @@ def identification_setup(domain: str) -> IdentificationSetup:
     data = load_domain(cfg)
     encoder, head, dynamics = build_components(cfg)
     train, test = data.splits["train"], data.splits["test"]
-    ctx = EvalContext(PIPEModel(encoder, head, dynamics, *data_scales(train)), torch.zeros(1, encoder.latent_dim),
+    ctx = EvalContext(PIPEModel(encoder, head, dynamics, *data_scales(train)), torch.zeros(1, head.latent_dim),
                       {}, train, 1.0 / cfg.data.rate_hz, 0, dict(cfg.evaluation))
     ltv.set_backend("compiled")
     return IdentificationSetup(train, test, ctx, IdentificationSettings.from_config(cfg.evaluation.identification),

@@ -21,8 +21,9 @@ from timing import median_seconds
 
 from pipe.model.card import ModelCard
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.sections import SectionCode
 from pipe.model.uncertainty import force_band, theta_band
-from pipe.pipeline import build_components
+from pipe.pipeline import build_components, uses_sections
 from pipe.predict import mesh_files, predict_with, sample_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,7 +40,8 @@ def main() -> None:
         train_cfg = compose("config", overrides=["paths.output_dir=unused"])
         cfg = compose("predict", overrides=[f"mesh={args.mesh}", "run=unused"])
     encoder, head, dynamics = build_components(train_cfg)
-    model = PIPEModel(encoder, head, dynamics, force_scale=10.0, depth_scale=5.0).eval()
+    sections = SectionCode() if uses_sections(train_cfg) else None    # unstandardised: no training parts here
+    model = PIPEModel(encoder, head, dynamics, force_scale=10.0, depth_scale=5.0, sections=sections).eval()
     card = ModelCard(domain="benchmark", points=int(train_cfg.data.points), cloud_seed=0,
                      rate_hz=float(train_cfg.data.rate_hz), parameter_names=tuple(dynamics.parameter_names),
                      train_parts=("none",), train_size_mm=(1.0, 100.0), depth_scale_mm=5.0, force_scale_n=10.0)

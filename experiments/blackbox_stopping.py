@@ -14,19 +14,17 @@ from pathlib import Path
 import numpy as np
 from common import load_encoder, load_run
 
-from pipe.data.prepared import data_scales
 from pipe.evaluation import methods
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import score
-from pipe.model.pipe_model import PIPEModel
-from pipe.pipeline import latent_codes
+from pipe.pipeline import build_model, latent_codes
 
 
 def curves(run: Path) -> dict:
     cfg, data, (encoder, head, dynamics) = load_run(run)
     load_encoder(encoder, run)
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
-    model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+    model = build_model(cfg, data, (encoder, head, dynamics))
     latents, logvars, index = latent_codes(model, data)
     ctx = EvalContext(model, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed, dict(cfg.evaluation), val=val,
                       logvars=logvars)

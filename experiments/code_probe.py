@@ -31,9 +31,8 @@ from sklearn.linear_model import RidgeCV
 from summarise import domain_of, spread
 
 from pipe.data.batches import stack_clouds
-from pipe.data.prepared import data_scales
-from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SectionCode
+from pipe.pipeline import build_model
 
 PENALTIES = np.logspace(-4, 3, 15)
 
@@ -54,7 +53,7 @@ def run_row(run_dir: Path, layer: str) -> dict:
     cfg, data, (encoder, head, dynamics) = load_run(run_dir)
     load_encoder(encoder, run_dir)
     train, test = data.splits["train"], data.splits["test"]
-    model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+    model = build_model(cfg, data, (encoder, head, dynamics))
     clouds = stack_clouds(train + test)
     with torch.no_grad():
         if layer == "sections":

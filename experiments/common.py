@@ -10,12 +10,12 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from pipe.data.prepared import PreparedDomain, data_scales
+from pipe.data.prepared import PreparedDomain
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
-from pipe.pipeline import build_components, load_domain
+from pipe.pipeline import build_components, build_model, load_domain
 
 
 def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, PreparedDomain, tuple]:
@@ -38,7 +38,7 @@ def oracle_context(run_dir: Path) -> tuple[DictConfig, list, EvalContext]:
     zero codes (the oracle's free profiles read none)."""
     cfg, data, (encoder, head, dynamics) = load_run(run_dir)
     train, test = data.splits["train"], data.splits["test"]
-    model = PIPEModel(encoder, head, dynamics, *data_scales(train)).eval()
+    model = build_model(cfg, data, (encoder, head, dynamics)).eval()
     ctx = EvalContext(model, torch.zeros(len(test), head.latent_dim), {p.name: i for i, p in enumerate(test)},
                       train, 1.0 / cfg.data.rate_hz, cfg.seed, dict(cfg.evaluation))
     return cfg, test, ctx

@@ -40,11 +40,9 @@ from common import load_encoder, load_run, pooled_features, score
 from omegaconf import DictConfig, OmegaConf
 
 from pipe.data.batches import stack_clouds
-from pipe.data.prepared import data_scales
 from pipe.model.interfaces import ParameterHead
-from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SECTION_SIZE, SectionCode
-from pipe.pipeline import build_plugin
+from pipe.pipeline import build_model, build_plugin
 from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.families import family_parts
 from pipe.training.fit import fit_head
@@ -151,13 +149,13 @@ def main() -> None:
                              f"({', '.join(sorted(known))})")
         for kind in kinds:
             head.load_state_dict(initial)
-            model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+            model = build_model(cfg, data, (encoder, head, dynamics))
             if kind == "codes+sections":
                 width = head.latent_dim
                 torch.manual_seed(cfg.seed)
                 wide = build_plugin("head", cfg.head, ParameterHead, latent_dim=2 * width,
                                     num_parameters=len(dynamics.parameter_names))
-                model = PIPEModel(encoder, wide, dynamics, *data_scales(train))
+                model = build_model(cfg, data, (encoder, wide, dynamics))
                 sections = section_codes(clouds, len(train), width)
                 latents = torch.cat([model.latent_distribution(clouds)[0], sections], dim=1)
             elif kind == "codes":

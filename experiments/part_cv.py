@@ -36,6 +36,7 @@ from summarise import domain_of
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import data_scales
 from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_model
 from pipe.training import fit as fit_module
 
 
@@ -84,7 +85,7 @@ def main() -> None:
         heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
         pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
         index = {p.name: i for i, p in enumerate(pool + test)}
-        unscaled = PIPEModel(encoder, head, dynamics)
+        unscaled = build_model(cfg, data, (encoder, head, dynamics))   # its cross-section: the run's training parts'
         clouds = stack_clouds(pool + test)
         latents, logvars = unscaled.latent_distribution(clouds)
         targets = (profile_targets(cfg, unscaled, latents, index, pool, args.fits)
@@ -100,7 +101,7 @@ def main() -> None:
                 encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
                 trained, initial = heads[spec]
                 trained.load_state_dict(initial)
-                model = PIPEModel(encoder, trained, dynamics, *scales)
+                model = PIPEModel(encoder, trained, dynamics, *scales, sections=unscaled.sections)
                 if "pretrain" in variant:
                     pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
                 run_cfg = variant_config(cfg, variant)

@@ -55,11 +55,9 @@ from omegaconf import DictConfig
 from profile_pretraining import FITS, pretrain_head, profile_targets
 
 from pipe.data.batches import stack_clouds
-from pipe.data.prepared import data_scales
 from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import FORCE_LOSSES
-from pipe.model.pipe_model import PIPEModel
-from pipe.pipeline import build_components
+from pipe.pipeline import build_components, build_model
 from pipe.training import fit as fit_module
 from pipe.training.stages import HeadStage, check_finite
 
@@ -100,10 +98,14 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
 
         def codes(self, batch):
             if tuned == "encoder":
-                return self.model.encoder.encode(clouds[batch.part])[0]
-            if tuned == "mu":
-                return self.model.encoder.to_mu(self.features[batch.part])
-            return self.latents[batch.part]
+                z = self.model.encoder.encode(clouds[batch.part])[0]
+            elif tuned == "mu":
+                z = self.model.encoder.to_mu(self.features[batch.part])
+            else:
+                return self.latents[batch.part]
+            if self.model.sections is None:
+                return z
+            return torch.cat([z, self.model.sections(clouds[batch.part])], dim=1)   # code.sections: as the run's
 
         def on_validation_epoch_end(self):
             if "select" not in variant or self.trainer.sanity_checking:
@@ -208,7 +210,7 @@ def main() -> None:
         own_encoder = copy.deepcopy(encoder.state_dict())
         heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
-        model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+        model = build_model(cfg, data, (encoder, head, dynamics))
         index = {p.name: i for i, p in enumerate(train + val + test)}
         clouds = stack_clouds(train + val + test)
         latents, logvars = model.latent_distribution(clouds)

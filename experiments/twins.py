@@ -24,11 +24,10 @@ import torch
 from common import append_row, load_encoder, load_head_stage, load_run
 
 from pipe.data.batches import stack_clouds
-from pipe.data.prepared import data_scales
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.methods import model_forces
 from pipe.evaluation.metrics import fit_percent
-from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_model
 
 
 def agreement(forces: list[np.ndarray], reference: list[np.ndarray]) -> float:
@@ -46,7 +45,7 @@ def main() -> None:
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
         load_encoder(encoder, run_dir)
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
-        model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+        model = build_model(cfg, data, (encoder, head, dynamics))
         load_head_stage(model, run_dir / "checkpoints/head/best.ckpt")
         model.eval()
         parts = train + val + test

@@ -31,10 +31,10 @@ from common import load_run, score
 
 from pipe.data.batches import stack_clouds
 from pipe.data.dataset import load_dataset
-from pipe.data.prepared import PartData, data_scales
+from pipe.data.prepared import PartData
 from pipe.data.preprocess import cloud_from_mesh
 from pipe.data.spec import load_spec
-from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_model
 from pipe.training import fit as fit_module
 from pipe.training.stages import VAEStage
 
@@ -122,7 +122,7 @@ def main() -> None:
             run_dir = Path(run)
             cfg, data, (encoder, head, dynamics) = load_run(run_dir)
             train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
-            model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+            model = build_model(cfg, data, (encoder, head, dynamics))
             draws = redrawn_clouds(data.dataset_dir, train, cfg.data.cloud_seed, extra) if extra else None
             fit_module.VAEStage = augmented_stage(rotate, scale, draws, cfg.seed)
             try:

@@ -19,9 +19,9 @@ from pathlib import Path
 from common import load_run, score
 
 from pipe.data.batches import stack_clouds
-from pipe.data.prepared import PartData, data_scales
+from pipe.data.prepared import PartData
 from pipe.data.preprocess import cloud_from_mesh
-from pipe.model.pipe_model import PIPEModel
+from pipe.pipeline import build_model
 from pipe.synthetic.families import family_parts
 from pipe.synthetic.meshes import part_mesh
 from pipe.training.fit import fit_head, fit_vae
@@ -56,7 +56,7 @@ def main() -> None:
         extra = [PartData(f.stem, cloud_from_mesh(f, "mm", int(cfg.data.points), int(cfg.data.cloud_seed)), [], [])
                  for f in pool_files]
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
-        model = PIPEModel(encoder, head, dynamics, *data_scales(train))
+        model = build_model(cfg, data, (encoder, head, dynamics))
         with tempfile.TemporaryDirectory() as tmp:
             vae_s = fit_vae(cfg, encoder, train + extra, val, Path(tmp), False, [])
             index = {p.name: i for i, p in enumerate(train + val + test)}

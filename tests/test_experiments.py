@@ -353,7 +353,8 @@ def test_encoder_stage1_trains_another_encoder_on_exported_clouds_into_a_run_fol
     sys.path.insert(0, str(ROOT / "experiments"))
     from common import load_encoder
 
+    from pipe.model.sections import SECTION_SIZE
     from pipe.pipeline import build_components
     encoder, head, _ = build_components(cfg)
     load_encoder(encoder, out)
-    assert encoder.latent_dim == head.latent_dim == 16
+    assert encoder.latent_dim == 16 and head.latent_dim == 16 + SECTION_SIZE     # code.sections, as the run
