@@ -103,9 +103,8 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
                 z = self.model.encoder.to_mu(self.features[batch.part])
             else:
                 return self.latents[batch.part]
-            if self.model.sections is None:
-                return z
-            return torch.cat([z, self.model.sections(clouds[batch.part])], dim=1)   # code.sections: as the run's
+            # with code.sections the fixed cross-section follows the code: the latents' own tail
+            return torch.cat([z, self.latents[batch.part, z.shape[1]:]], dim=1)
 
         def on_validation_epoch_end(self):
             if "select" not in variant or self.trainer.sanity_checking:
