@@ -66,9 +66,10 @@ def load_head_stage(model: torch.nn.Module, checkpoint: Path) -> None:
 
 def fits(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor, index: dict[str, int],
          split: str, methods: list[str]) -> dict[str, float]:
-    """Each method's FIT(F) on a split's parts, as the evaluation reports it."""
+    """Each method's FIT(F) on a split's parts, as the evaluation reports it (the baselines read the part of
+    the code of their lowest validation error; PIPE without its band)."""
     ctx = EvalContext(model, latents, index, data.splits["train"], 1.0 / cfg.data.rate_hz, cfg.seed,
-                      dict(cfg.evaluation), val=[], logvars=None)
+                      dict(cfg.evaluation), val=data.splits["val"], logvars=None)
     return {name: result.domain["fit_F"] for name, result in evaluate_methods(ctx, data.splits[split], methods).items()}
 
 

@@ -167,6 +167,8 @@ def main() -> None:
             else:
                 latents = parameter_codes([generator[p.name] for p in ordered], len(train), kind, head.latent_dim,
                                           without)
+            if kind not in ("codes", "codes+sections"):
+                model.sections = None   # the code is replaced whole: no cross-section at its tail for nearest
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 fit_head(cfg, model, latents, index, train, val, Path(tmp), False, [])

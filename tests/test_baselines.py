@@ -20,8 +20,9 @@ from pipe.evaluation import identification
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.evaluation.identification import identify, start_head
-from pipe.evaluation.methods import METHODS
+from pipe.evaluation.methods import METHODS, code_inputs, validation_nmse
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.sections import SECTION_SIZE, SectionCode
 from pipe.pipeline import build_components
 from pipe.plugins.encoder.pointnet import PointNetVAE
 from pipe.plugins.head.gaussian import GaussianHead
@@ -370,6 +371,76 @@ def test_blackbox_does_not_depend_on_what_the_process_drew_before(ctx):
     blackbox = METHODS["blackbox"]()
     blackbox.fit(context)
     assert not np.array_equal(blackbox.predict(context, test)[0], fitted[0])
+
+
+def add_sections(context: EvalContext) -> None:
+    """Give the context a model that appends the cross-section to the code, and a validation part. The
+    encoder's code places the test part (0.45) nearest to a (0) and the validation part (0.7) nearest to b (1),
+    their cross-sections the other way round."""
+    context.model = PIPEModel(context.model.encoder, GaussianHead(32 + SECTION_SIZE, 4), MDS2(), force_scale=10.0,
+                              depth_scale=6.0, sections=SectionCode())
+    context.val = [part("v", 2.5)]
+    context.index["v"] = 3
+    code = torch.tensor([[0.0], [1.0], [0.45], [0.7]]).expand(4, 32)
+    sections = torch.tensor([[1.0], [0.0], [0.3], [0.9]]).expand(4, SECTION_SIZE)
+    context.latents = torch.cat([code, sections], 1)
+    context.settings["blackbox_steps"] = 200
+
+
+@pytest.fixture
+def with_sections(ctx):
+    add_sections(ctx[0])
+    return ctx
+
+
+def test_code_inputs_split_the_code_where_the_cross_section_begins(ctx):
+    context, _ = ctx
+    assert code_inputs(context) == {"code": slice(None)}
+    add_sections(context)
+    assert code_inputs(context) == {"code+sections": slice(None), "code": slice(0, 32), "sections": slice(32, None)}
+
+
+@pytest.mark.parametrize("name", ["nearest", "gpr", "blackbox"])
+def test_baselines_read_the_input_of_their_lowest_validation_error(with_sections, name):
+    """Fitted on each input alone (the reference), then left to choose: it reads the one of the lowest
+    validation error, and says so in its diagnostics."""
+    context, test = with_sections
+    scores = {}
+    for inputs in code_inputs(context):
+        alone = METHODS[name]()
+        alone.inputs = inputs
+        alone.fit_inputs(context)
+        scores[inputs] = validation_nmse(alone, context)
+    chosen = METHODS[name]()
+    chosen.fit(context)
+    assert chosen.inputs == min(scores, key=scores.get)
+    assert validation_nmse(chosen, context) == pytest.approx(scores[chosen.inputs])
+    diagnostics = chosen.diagnostics(context, test)
+    assert diagnostics[f"{name}_reads_code"] == float(chosen.inputs != "sections")
+    assert diagnostics[f"{name}_reads_sections"] == float(chosen.inputs != "code")
+
+
+@pytest.mark.parametrize("inputs, nearest", [("code", 0), ("sections", 1), ("code+sections", 1)])
+def test_nearest_measures_distance_on_what_it_reads_and_predicts_from_the_whole_code(with_sections, inputs,
+                                                                                     nearest):
+    """Test part: code 0.45, cross-section 0.3; a: 0 and 1; b: 1 and 0 (32 and 25 values each), so b is
+    nearer by the whole code (squared distances 6.5 + 12.25 against 9.7 + 2.25)."""
+    context, test = with_sections
+    method = METHODS["nearest"]()
+    method.inputs = inputs
+    batch = context.batch(test)
+    with torch.no_grad():
+        expected = context.model(context.latents[[nearest]], batch.depth[:1], DT)[0].numpy()
+    np.testing.assert_allclose(method.predict(context, test)[0], expected, rtol=1e-6)
+
+
+def test_without_validation_parts_the_baselines_read_what_the_head_reads(with_sections):
+    context, test = with_sections
+    context.val = []
+    for name in ("nearest", "gpr", "blackbox"):
+        method = METHODS[name]()
+        method.fit(context)
+        assert method.inputs == "code+sections"
 
 
 def test_mean_is_the_average_training_force_over_depth(ctx):

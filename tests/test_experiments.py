@@ -312,6 +312,17 @@ def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(tra
     assert geometry["test"]["pipe"] != pytest.approx(codes["test"]["pipe"], abs=1e-6)
 
 
+@pytest.mark.slow
+def test_blackbox_stopping_records_the_checks_of_one_input_and_keeps_the_best_validation_step(trained_run,
+                                                                                           tmp_path):
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("blackbox_stopping.py", str(rows_file), str(trained_run.run_dir), "--inputs", "code")
+    row = json.loads(rows_file.read_text())
+    assert row["inputs"] == "code"
+    assert len(row["steps"]) == len(row["val_fit"]) == len(row["test_fit"]) >= 1
+    assert row["kept_step"] == row["steps"][row["val_fit"].index(max(row["val_fit"]))]
+
+
 def test_code_probe_scores_a_parameter_the_codes_hold_near_one_and_one_they_do_not_below_zero():
     import numpy as np
     sys.path.insert(0, str(ROOT / "experiments"))

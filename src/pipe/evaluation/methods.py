@@ -11,6 +11,10 @@
             training parts (each identified like the oracle), the task-parameterised approach.
 - blackbox: a neural network from latent code and depth to force, without the physical model.
 - mean:     the mean training force over depth.
+
+nearest, gpr and the blackbox read the part's code through the input of their lowest validation error
+(`CodeBaseline`): with code.sections on, the encoder's code and the cross-section together (what PIPE's head
+reads), the encoder's code alone, or the cross-section alone.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from pipe.data.prepared import PartData
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.identification import Identified, Request, identify
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.sections import SECTION_SIZE
 from pipe.model.uncertainty import BandSettings, ForceBands, conformal_offset, force_band
 from pipe.registry import Registry
 
@@ -90,6 +95,56 @@ def validation_nmse(method: Method, ctx: EvalContext) -> float:
     scores = [np.sum((p.force - f) ** 2) / np.sum((p.force - p.force.mean()) ** 2)
               for part in ctx.val for p, f in zip(part.profiles, method.predict(ctx, part))]
     return float(np.mean(scores))
+
+
+def code_inputs(ctx: EvalContext) -> dict[str, slice]:
+    """The parts of the latent code a baseline may read, by name, the first what PIPE's head reads: the whole
+    code and, where the model appends the cloud's cross-section (code.sections), the encoder's code alone and
+    the cross-section alone."""
+    if ctx.model.sections is None:
+        return {"code": slice(None)}
+    width = ctx.latents.shape[1] - SECTION_SIZE
+    return {"code+sections": slice(None), "code": slice(0, width), "sections": slice(width, None)}
+
+
+class CodeBaseline(Method):
+    """A baseline that reads the parts' latent codes. `fit` fits one candidate on each of `code_inputs` and
+    keeps the one of the lowest validation error (`validation_nmse`; without validation parts, the first), so
+    that an input which helps PIPE's head but misleads the baseline does not handicap it."""
+
+    inputs = "code"     # the chosen one of `code_inputs`
+
+    @abstractmethod
+    def fit_inputs(self, ctx: EvalContext) -> None:
+        """Fit on the training parts, reading their codes through `self.code`."""
+
+    def code(self, ctx: EvalContext, part: PartData) -> torch.Tensor:
+        """The part of the part's latent code that the baseline reads."""
+        return ctx.latent(part)[code_inputs(ctx)[self.inputs]]
+
+    def fit(self, ctx):
+        names = list(code_inputs(ctx)) if ctx.val else list(code_inputs(ctx))[:1]
+        candidates = []
+        for name in names:
+            candidate = copy.copy(self)
+            candidate.inputs = name
+            candidate.fit_inputs(ctx)
+            candidates.append(candidate)
+        chosen = candidates[0]
+        if len(candidates) > 1:
+            scores = [validation_nmse(c, ctx) for c in candidates]
+            chosen = candidates[int(np.argmin(scores))]
+            log.info("%s reads %s (validation NMSE: %s)", self.name, chosen.inputs,
+                     ", ".join(f"{name} {score:.4f}" for name, score in zip(names, scores)))
+        self.__dict__.update(chosen.__dict__)
+
+    def diagnostics(self, ctx, part):
+        """Where there was a choice, which inputs it reads (1 or 0; their mean over seeds is the share of the
+        seeds that chose them)."""
+        if len(code_inputs(ctx)) == 1:
+            return {}
+        return {f"{self.name}_reads_code": float(self.inputs in ("code", "code+sections")),
+                f"{self.name}_reads_sections": float(self.inputs in ("sections", "code+sections"))}
 
 
 @torch.no_grad()
@@ -174,12 +229,17 @@ class OracleClean(Oracle):
 
 
 @METHODS.register
-class Nearest(Method):
+class Nearest(CodeBaseline):
     name = "nearest"
 
+    def fit_inputs(self, ctx):
+        pass            # nothing to learn: it looks the training parts up
+
     def _nearest(self, ctx: EvalContext, part: PartData) -> torch.Tensor:
-        train = torch.stack([ctx.latent(p) for p in ctx.train])
-        return train[torch.cdist(ctx.latent(part)[None], train)[0].argmin()]
+        """The whole latent code of the training part whose code (as read) is nearest to the part's."""
+        read = torch.stack([self.code(ctx, p) for p in ctx.train])
+        nearest = ctx.train[int(torch.cdist(self.code(ctx, part)[None], read)[0].argmin())]
+        return ctx.latent(nearest)
 
     def predict(self, ctx, part):
         return model_forces(ctx, ctx.model, self._nearest(ctx, part), part)
@@ -189,7 +249,7 @@ class Nearest(Method):
 
 
 @METHODS.register
-class GPR(Method):
+class GPR(CodeBaseline):
     """Latent code -> log of each identified parameter profile sampled at `grid` fractions of max depth.
 
     Each training part is identified from scratch like the oracle, but from the neutral start only: the
@@ -204,14 +264,13 @@ class GPR(Method):
     def identifications(self, ctx, parts):
         return [Request(ctx.train, restarts=1)]
 
-    def fit(self, ctx):
+    def fit_inputs(self, ctx):
         rows, targets = [], []
         for part, identified in zip(ctx.train, identify(ctx, ctx.train, restarts=1)):
-            z = ctx.latent(part)
             depth_max = float(np.mean([np.abs(p.depth).max() for p in part.profiles]))
             depth = torch.tensor(self.grid * depth_max, dtype=torch.float32)[None]
-            theta = identified.model.profile(z[None], torch.tensor([depth_max]))(depth)   # (1, G, P)
-            rows.append(z.numpy())
+            theta = identified.model.profile(ctx.latent(part)[None], torch.tensor([depth_max]))(depth)  # (1, G, P)
+            rows.append(self.code(ctx, part).numpy())
             targets.append(np.log(theta[0].numpy()).T.ravel())
         x = np.stack(rows)
         self.mean, self.std = x.mean(0), x.std(0) + 1e-9
@@ -239,10 +298,10 @@ class GPR(Method):
                         + WhiteKernel(1e-2) for f in GPR.LENGTH_SCALES)]
 
     def diagnostics(self, ctx, part):
-        return {"gpr_length_scale": self.length_scale}
+        return super().diagnostics(ctx, part) | {"gpr_length_scale": self.length_scale}
 
     def _theta(self, ctx: EvalContext, part: PartData, depth: np.ndarray, depth_max: float) -> torch.Tensor:
-        log_grid = self.gp.predict(((ctx.latent(part).numpy() - self.mean) / self.std)[None])[0]
+        log_grid = self.gp.predict(((self.code(ctx, part).numpy() - self.mean) / self.std)[None])[0]
         log_grid = log_grid.reshape(self.num_parameters, len(self.grid))
         u = np.abs(depth) / depth_max
         theta = np.stack([np.exp(np.interp(u, self.grid, row)) for row in log_grid], -1)
@@ -264,7 +323,7 @@ class GPR(Method):
 
 
 @METHODS.register
-class BlackBox(Method):
+class BlackBox(CodeBaseline):
     """An MLP f(z, p_z) -> F trained on every sample of the training trials (MSE); no dynamics, no physics.
     Its inputs are standardised (codes by the training parts' mean and std, depth and force by their
     scales), and it keeps the weights of its lowest validation error, checked every `CHECK_EVERY` steps."""
@@ -272,10 +331,10 @@ class BlackBox(Method):
     name = "blackbox"
     CHECK_EVERY = 100
 
-    def fit(self, ctx):
+    def fit_inputs(self, ctx):
         force_scale, depth_scale = ctx.scales
         self.scales = (force_scale, depth_scale)
-        codes = torch.stack([ctx.latent(part) for part in ctx.train])
+        codes = torch.stack([self.code(ctx, part) for part in ctx.train])
         self.code_mean, self.code_std = codes.mean(0), codes.std(0) + 1e-6
         with torch.random.fork_rng(devices=[]):   # its initial weights from the run's seed, not from what the
             torch.manual_seed(ctx.seed)            # process drew before (a training in this process, or none)
@@ -305,7 +364,7 @@ class BlackBox(Method):
 
     def _inputs(self, ctx: EvalContext, part: PartData, depth: np.ndarray) -> torch.Tensor:
         p = torch.as_tensor(depth, dtype=torch.float32)
-        code = (ctx.latent(part) - self.code_mean) / self.code_std
+        code = (self.code(ctx, part) - self.code_mean) / self.code_std
         return torch.cat([code.expand(len(p), -1), (p / self.scales[1])[:, None]], 1)
 
     @torch.no_grad()
@@ -313,7 +372,7 @@ class BlackBox(Method):
         return self.net(self._inputs(ctx, part, depth))[:, 0].numpy() * self.scales[0]
 
     def diagnostics(self, ctx, part):
-        return {"blackbox_steps": float(self.best_step)}
+        return super().diagnostics(ctx, part) | {"blackbox_steps": float(self.best_step)}
 
     def predict(self, ctx, part):
         return [self._force(ctx, part, p.depth) for p in part.profiles]
