@@ -11,7 +11,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import ROOT
+from conftest import ROOT, smoke_config
 
 
 def run_script(*args: str) -> str:
@@ -321,6 +321,25 @@ def test_blackbox_stopping_records_the_checks_of_one_input_and_keeps_the_best_va
     assert row["inputs"] == "code"
     assert len(row["steps"]) == len(row["val_fit"]) == len(row["test_fit"]) >= 1
     assert row["kept_step"] == row["steps"][row["val_fit"].index(max(row["val_fit"]))]
+
+
+@pytest.mark.slow
+def test_candidate_ensemble_reproduces_the_kept_candidate_and_the_mean_force_fits_at_least_their_mean(tiny_data,
+                                                                                                      tmp_path):
+    """The kept candidate's row is the run's own PIPE to the digit; the mean of two forces fits every trial at
+    least as well as the two fit on average (the squared error is convex), so per split too."""
+    from pipe.pipeline import run_domain
+
+    run = run_domain(smoke_config(tiny_data, tmp_path / "run", "mlflow.enabled=false",
+                                  "stages.vae.force_weight=[0,100]"))
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("candidate_ensemble.py", str(rows_file), str(run.run_dir))
+    row = json.loads(rows_file.read_text())
+    assert row["test"]["chosen"] == pytest.approx(run.pipe.domain["fit_F"], abs=1e-9)
+    for split in ("val", "test"):
+        alone = [row[split]["force_weight_0"], row[split]["force_weight_100"]]
+        assert row[split]["chosen"] == row[split][f"force_weight_{row['chosen_weight']:g}"]
+        assert row[split]["ensemble"] >= statistics.mean(alone) - 1e-9
 
 
 def test_code_probe_scores_a_parameter_the_codes_hold_near_one_and_one_they_do_not_below_zero():
