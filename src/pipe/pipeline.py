@@ -205,11 +205,12 @@ def build_model(cfg: DictConfig, data: PreparedDomain,
                 components: tuple[PointCloudVAE, ParameterHead, DynamicModel] | None = None) -> PIPEModel:
     """PIPE of the configured (or the given) components, scaled by the domain's training parts, with their
     cross-section's standardisation where `code.sections` asks for it."""
-    train = data.splits["train"]
-    if uses_sections(cfg) and len(train) < 2:
-        raise PipeError(f"code.sections standardises the cross-section over the training parts, and domain "
-                        f"{data.domain.name} has {len(train)}: give it two or more, or set code.sections=false")
-    sections = SectionCode.fitted(stack_clouds(train)) if uses_sections(cfg) else None
+    train, sections = data.splits["train"], None
+    if uses_sections(cfg):
+        if len(train) < 2:
+            raise PipeError(f"code.sections standardises the cross-section over the training parts, and domain "
+                            f"{data.domain.name} has {len(train)}: give it two or more, or set code.sections=false")
+        sections = SectionCode.fitted(stack_clouds(train))
     return PIPEModel(*(components or build_components(cfg)), *data_scales(train), sections=sections)
 
 

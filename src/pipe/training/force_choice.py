@@ -71,7 +71,7 @@ def check_resumed_layout(folder: Path, choosing: bool) -> None:
     """Refuse to resume (or evaluate) a folder without checkpoints, or one trained with one force weight by a
     run that chooses among candidates, or the other way round: which it was trained with, and what to do."""
     single, candidates = (folder / "checkpoints").is_dir(), candidate_dirs(folder)
-    if not holds_training(folder):
+    if not (single or candidates):   # holds_training(folder), without listing the candidates again
         raise PipeError("resume= names a folder without checkpoints; give the output folder of an earlier run", folder)
     if choosing and not candidates:
         raise PipeError("was trained with one stage-1 force weight, and this run chooses among several: give it "
