@@ -51,8 +51,8 @@ def scores(run: Path) -> dict:
     predicted = {}
     for candidate in candidates:
         splits, predicted[candidate.name], dt = candidate_forces(candidate)
-    mean = {name: [(a + b) / 2 for a, b in zip(*(predicted[c.name][name] for c in candidates))]
-            for name in predicted[candidates[0].name]}
+    mean = {name: [(a.astype(np.float64) + b) / 2 for a, b in zip(*(predicted[c.name][name] for c in candidates))]
+            for name in predicted[candidates[0].name]}      # in float64: no rounding of the mean itself
     chosen = f"{CANDIDATE_PREFIX}{training['chosen']:g}"
     row = {"run": str(run), "chosen_weight": training["chosen"]}
     for split in ("val", "test"):
