@@ -42,7 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipe.data.batches import stack_clouds
 from pipe.model.interfaces import ParameterHead
 from pipe.model.sections import SECTION_SIZE, SectionCode
-from pipe.pipeline import build_model, build_plugin
+from pipe.pipeline import build_model, build_plugin, uses_sections
 from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.families import family_parts
 from pipe.training.fit import fit_head
@@ -147,19 +147,22 @@ def main() -> None:
         if unknown := set(without) - known:
             raise SystemExit(f"--without {', '.join(sorted(unknown))}: not a parameter of these parts "
                              f"({', '.join(sorted(known))})")
+        if "codes+sections" in kinds and uses_sections(cfg):
+            raise SystemExit(f"{run_dir}: its code already ends with the cross-section (code.sections): "
+                             "`codes` is codes+sections there")
         for kind in kinds:
             head.load_state_dict(initial)
-            model = build_model(cfg, data, (encoder, head, dynamics))
+            kind_head = head
             if kind == "codes+sections":
-                width = head.latent_dim
                 torch.manual_seed(cfg.seed)
-                wide = build_plugin("head", cfg.head, ParameterHead, latent_dim=2 * width,
-                                    num_parameters=len(dynamics.parameter_names))
-                model = build_model(cfg, data, (encoder, wide, dynamics))
-                sections = section_codes(clouds, len(train), width)
-                latents = torch.cat([model.latent_distribution(clouds)[0], sections], dim=1)
-            elif kind == "codes":
+                kind_head = build_plugin("head", cfg.head, ParameterHead, latent_dim=2 * head.latent_dim,
+                                         num_parameters=len(dynamics.parameter_names))
+            model = build_model(cfg, data, (encoder, kind_head, dynamics))
+            if kind == "codes":
                 latents = model.latent_distribution(clouds)[0]
+            elif kind == "codes+sections":
+                latents = torch.cat([model.latent_distribution(clouds)[0],
+                                     section_codes(clouds, len(train), head.latent_dim)], dim=1)
             elif kind == "sections":
                 latents = section_codes(clouds, len(train), head.latent_dim)
             elif kind == "features":

@@ -313,6 +313,15 @@ def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(tra
 
 
 @pytest.mark.slow
+def test_parameter_codes_refuse_codes_and_sections_where_the_code_already_ends_with_them(trained_run, tmp_path):
+    done = subprocess.run([sys.executable, "parameter_codes.py", str(tmp_path / "rows.jsonl"),
+                           str(trained_run.run_dir), "--codes", "codes+sections"], cwd=ROOT / "experiments",
+                          env={**os.environ, "PROJECT_ROOT": str(ROOT)}, capture_output=True, text=True, timeout=600)
+    assert done.returncode != 0 and "already ends with the cross-section" in done.stderr
+    assert not (tmp_path / "rows.jsonl").exists()
+
+
+@pytest.mark.slow
 def test_blackbox_stopping_records_the_checks_of_one_input_and_keeps_the_best_validation_step(trained_run,
                                                                                            tmp_path):
     rows_file = tmp_path / "rows.jsonl"
