@@ -24,17 +24,20 @@ import statistics
 import tempfile
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from common import append_row, load_encoder, load_run, pipe_fit
+from omegaconf import DictConfig
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
 from stage2_variants import parse_variant, variant_config, variant_head, variant_stage
 from summarise import domain_of
 
 from pipe.data.batches import stack_clouds
-from pipe.data.prepared import data_scales
+from pipe.data.prepared import PartData, PreparedDomain, data_scales
 from pipe.model.pipe_model import PIPEModel
 from pipe.pipeline import build_model
 from pipe.training import fit as fit_module
@@ -60,6 +63,60 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+class Fold(NamedTuple):
+    """One variant's head trained with one non-test part held out: the run's config, the fold's domain (that
+    part its only test part, no validation parts), the model, the codes it reads by `index` (every non-test
+    and test part's), and the seconds stage 2 took."""
+
+    cfg: DictConfig
+    data: PreparedDomain
+    held_out: PartData
+    variant: str
+    model: PIPEModel
+    codes: torch.Tensor
+    index: dict[str, int]
+    seconds: float
+
+
+def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str) -> Iterator[Fold]:
+    """For each non-test part of a finished run held out in turn, and each variant: the head trained again
+    from the run's initial weights on the run's stage-1 encoder, on the other non-test parts."""
+    cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+    load_encoder(encoder, run_dir)
+    own_encoder = copy.deepcopy(encoder.state_dict())
+    heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
+    pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
+    index = {p.name: i for i, p in enumerate(pool + test)}
+    unscaled = build_model(cfg, data, (encoder, head, dynamics))   # its cross-section: the run's training parts'
+    clouds = stack_clouds(pool + test)
+    latents, logvars = unscaled.latent_distribution(clouds)
+    targets = (profile_targets(cfg, unscaled, latents, index, pool, fits)
+               if any("pretrain" in variant for _, variant in variants) else None)
+    for held_out in pool:
+        kept = [i for i, p in enumerate(pool) if p is not held_out]
+        train = [pool[i] for i in kept]
+        fold = replace(data, splits={"train": train, "val": [], "test": [held_out]})
+        scales = data_scales(train)
+        spread = latents[[index[p.name] for p in train]].std(0)
+        steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
+        for spec, variant in variants:
+            encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
+            trained, initial = heads[spec]
+            trained.load_state_dict(initial)
+            model = PIPEModel(encoder, trained, dynamics, *scales, sections=unscaled.sections)
+            if "pretrain" in variant:
+                pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
+            run_cfg = variant_config(cfg, variant)
+            fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
+                                                 lambda: math.nan, {}, clouds)
+            start = time.perf_counter()
+            with tempfile.TemporaryDirectory() as tmp:
+                fit_module.fit_head(run_cfg, model, latents, index, train, [], Path(tmp), False, [])
+            with torch.no_grad():
+                codes = model.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else latents
+            yield Fold(cfg, fold, held_out, spec, model, codes, index, time.perf_counter() - start)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
@@ -78,44 +135,11 @@ def main() -> None:
             raise SystemExit(f"unsupported variant {spec!r}: a fold has no validation parts to select on, and "
                              "std and last are not supported here")
     for run in args.runs:
-        run_dir = Path(run)
-        cfg, data, (encoder, head, dynamics) = load_run(run_dir)
-        load_encoder(encoder, run_dir)
-        own_encoder = copy.deepcopy(encoder.state_dict())
-        heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
-        pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
-        index = {p.name: i for i, p in enumerate(pool + test)}
-        unscaled = build_model(cfg, data, (encoder, head, dynamics))   # its cross-section: the run's training parts'
-        clouds = stack_clouds(pool + test)
-        latents, logvars = unscaled.latent_distribution(clouds)
-        targets = (profile_targets(cfg, unscaled, latents, index, pool, args.fits)
-                   if any("pretrain" in variant for _, variant in variants) else None)
-        for held_out in pool:
-            kept = [i for i, p in enumerate(pool) if p is not held_out]
-            train = [pool[i] for i in kept]
-            fold = replace(data, splits={"train": train, "val": [], "test": [held_out]})
-            scales = data_scales(train)
-            spread = latents[[index[p.name] for p in train]].std(0)
-            steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
-            for spec, variant in variants:
-                encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
-                trained, initial = heads[spec]
-                trained.load_state_dict(initial)
-                model = PIPEModel(encoder, trained, dynamics, *scales, sections=unscaled.sections)
-                if "pretrain" in variant:
-                    pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
-                run_cfg = variant_config(cfg, variant)
-                fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
-                                                     lambda: math.nan, {}, clouds)
-                start = time.perf_counter()
-                with tempfile.TemporaryDirectory() as tmp:
-                    fit_module.fit_head(run_cfg, model, latents, index, train, [], Path(tmp), False, [])
-                with torch.no_grad():
-                    codes = model.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else latents
-                row = {"run": str(run_dir), "variant": spec, "held_out": held_out.name,
-                       "seconds": time.perf_counter() - start,
-                       "fit": pipe_fit(cfg, fold, model, codes, index, "test")}
-                append_row(args.out, row)
+        for fold in fold_models(Path(run), variants, args.fits):
+            fit = pipe_fit(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test")
+            row = {"run": str(Path(run)), "variant": fold.variant, "held_out": fold.held_out.name,
+                   "seconds": fold.seconds, "fit": fit}
+            append_row(args.out, row)
 
 
 if __name__ == "__main__":

@@ -351,6 +351,65 @@ def test_candidate_ensemble_reproduces_the_kept_candidate_and_the_mean_force_fit
         assert row[split]["ensemble"] >= statistics.mean(alone) - 1e-9 * max(1.0, abs(statistics.mean(alone)))
 
 
+@pytest.mark.slow
+def test_candidate_cv_holds_out_each_non_test_part_per_candidate_as_part_cv_does(tiny_data, tmp_path):
+    """Each candidate's PIPE on a held-out part is part_cv's `default` on that candidate's folder to the digit;
+    the ensemble fits each held-out part at least as well as the two candidates on average (FIT is concave in
+    the prediction); the run's kept candidate is the one flagged `chosen`."""
+    from pipe.pipeline import run_domain
+
+    run = run_domain(smoke_config(tiny_data, tmp_path / "run", "mlflow.enabled=false",
+                                  "stages.vae.force_weight=[0,100]"))
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("candidate_cv.py", str(rows_file), str(run.run_dir), "--fits", str(tmp_path / "fits"))
+    rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
+    non_test = ("dsub9", "dsub15", "vga")
+    assert sorted((r["candidate"], r["held_out"]) for r in rows) == sorted(
+        (c, p) for c in ("force_weight_0", "force_weight_100", "ensemble") for p in non_test)
+    kept = f"force_weight_{json.loads((run.run_dir / 'training.json').read_text())['force_weight']['chosen']:g}"
+    assert {r["candidate"] for r in rows if r.get("chosen")} == {kept}
+    pipe = {(r["candidate"], r["held_out"]): r["pipe"] for r in rows}
+    reference = tmp_path / "reference.jsonl"
+    run_script("part_cv.py", str(reference), str(run.run_dir / "force_weight_100"), "--variants", "default")
+    for line in reference.read_text().splitlines():
+        row = json.loads(line)
+        assert pipe[("force_weight_100", row["held_out"])] == pytest.approx(row["fit"], abs=1e-9)
+    for part in non_test:
+        alone = statistics.mean([pipe[("force_weight_0", part)], pipe[("force_weight_100", part)]])
+        assert pipe[("ensemble", part)] >= alone - 1e-9 * max(1.0, abs(alone))
+
+
+def test_candidate_cv_table_averages_the_held_out_parts_per_seed_and_reads_the_kept_candidates_baselines(tmp_path):
+    def row(run, candidate, part, pipe, chosen=False, nearest=0.0, gpr=0.0):
+        return {"run": run, "candidate": candidate, "held_out": part, "pipe": pipe, "chosen": chosen,
+                "nearest": nearest, "gpr": gpr, "gpr_hindsight": gpr + 1.0}
+    rows = [row("runs/pins/seed_0", "force_weight_0", "a", 50.0, True, 40.0, 30.0),
+            row("runs/pins/seed_0", "force_weight_0", "b", 70.0, True, 60.0, 10.0),
+            row("runs/pins/seed_0", "force_weight_1000", "a", 90.0),
+            row("runs/pins/seed_0", "force_weight_1000", "b", 10.0),
+            {"run": "runs/pins/seed_0", "candidate": "ensemble", "held_out": "a", "pipe": 80.0},
+            {"run": "runs/pins/seed_0", "candidate": "ensemble", "held_out": "b", "pipe": 60.0},
+            row("runs/pins/seed_1", "force_weight_0", "a", 30.0), row("runs/pins/seed_1", "force_weight_0", "b", 50.0),
+            row("runs/pins/seed_1", "force_weight_1000", "a", 20.0, True, 10.0, 70.0),
+            row("runs/pins/seed_1", "force_weight_1000", "b", 40.0, True, 30.0, 50.0),
+            {"run": "runs/pins/seed_1", "candidate": "ensemble", "held_out": "a", "pipe": 35.0},
+            {"run": "runs/pins/seed_1", "candidate": "ensemble", "held_out": "b", "pipe": 45.0}]
+    printed = printed_table("candidate_cv.py", rows, tmp_path, "--table")
+    # per seed: weight 0 60, 40; weight 1000 50, 30; chosen 60 (weight 0), 30 (weight 1000); ensemble 70, 40;
+    # nearest on the chosen codes 50, 20; gpr 20, 60; gpr in hindsight 21, 61
+    sd = statistics.stdev
+    # medians over the four held-out cases: 50, 30, 45, 52.5, 35, 40, 41
+    assert (f"| pins | 50.00 ± {sd([60, 40]):.2f} (50.00) | 40.00 ± {sd([50, 30]):.2f} (30.00) | "
+            f"45.00 ± {sd([60, 30]):.2f} (45.00) | 55.00 ± {sd([70, 40]):.2f} (52.50) | "
+            f"35.00 ± {sd([50, 20]):.2f} (35.00) | 40.00 ± {sd([20, 60]):.2f} (40.00) | "
+            f"41.00 ± {sd([21, 61]):.2f} (41.00) |") in printed
+    # paired, per seed and candidate: the mean over the held-out parts of PIPE's FIT minus the baseline's
+    assert "| pins | seed_0 | force_weight_0 | +10.00 | +40.00 | force_weight_0 | force_weight_0 |" in printed
+    assert "| pins | seed_0 | force_weight_1000 | +50.00 | +50.00 | force_weight_0 | force_weight_0 |" in printed
+    assert "| pins | seed_1 | force_weight_0 | +40.00 | +40.00 | force_weight_0 | force_weight_1000 |" in printed
+    assert "| pins | seed_1 | force_weight_1000 | +10.00 | -30.00 | force_weight_0 | force_weight_1000 |" in printed
+
+
 def test_code_probe_scores_a_parameter_the_codes_hold_near_one_and_one_they_do_not_below_zero():
     import numpy as np
     sys.path.insert(0, str(ROOT / "experiments"))
