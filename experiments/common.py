@@ -16,6 +16,7 @@ from pipe.evaluation.evaluate import evaluate_methods
 from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
 from pipe.pipeline import build_components, build_model, load_domain
+from pipe.training.force_choice import CANDIDATE_PREFIX
 
 
 def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, PreparedDomain, tuple]:
@@ -30,6 +31,13 @@ def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, Prepare
     L.seed_everything(cfg.seed, workers=True)
     data = load_domain(cfg)
     return cfg, data, build_components(cfg)
+
+
+def kept_folder(run_dir: Path) -> Path:
+    """The folder of the run's kept candidate where it trained two force weights, else the run's own."""
+    training = run_dir / "training.json"
+    chosen = json.loads(training.read_text()).get("force_weight", {}).get("chosen") if training.is_file() else None
+    return run_dir / f"{CANDIDATE_PREFIX}{chosen:g}" if chosen is not None else run_dir
 
 
 def oracle_context(run_dir: Path) -> tuple[DictConfig, list, EvalContext]:

@@ -30,10 +30,10 @@ from pathlib import Path
 from typing import NamedTuple
 
 import torch
-from common import append_row, load_encoder, load_run, pipe_fit
+from common import append_row, kept_folder, load_encoder, load_run, pipe_fit
 from omegaconf import DictConfig
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
-from stage2_variants import parse_variant, variant_config, variant_head, variant_stage
+from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
 from summarise import domain_of
 
 from pipe.data.batches import stack_clouds
@@ -80,7 +80,9 @@ class Fold(NamedTuple):
 
 def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str) -> Iterator[Fold]:
     """For each non-test part of a finished run held out in turn, and each variant: the head trained again
-    from the run's initial weights on the run's stage-1 encoder, on the other non-test parts."""
+    from the run's initial weights on the run's stage-1 encoder (its kept candidate's, where it trained two),
+    on the other non-test parts."""
+    run_dir = kept_folder(run_dir)
     cfg, data, (encoder, head, dynamics) = load_run(run_dir)
     load_encoder(encoder, run_dir)
     own_encoder = copy.deepcopy(encoder.state_dict())
@@ -114,6 +116,8 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str) -> I
                 fit_module.fit_head(run_cfg, model, latents, index, train, [], Path(tmp), False, [])
             with torch.no_grad():
                 codes = model.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else latents
+            if "clip" in variant:
+                codes = clipped(codes, [index[p.name] for p in train], float(variant["clip"]))
             yield Fold(cfg, fold, held_out, spec, model, codes, index, time.perf_counter() - start)
 
 

@@ -24,6 +24,10 @@ the test parts, which report. `default` reproduces the run's own PIPE result to 
   hidden=H     a head of hidden width H instead of the configured one (head.hidden), built and seeded as
                train.py builds it
   local=N      a head of N local models per parameter instead of the configured number (head.num_local_models)
+  clip=S       (part_cv.py only) PIPE reads the held-out part's code clipped, dimension by dimension, to the
+               training parts' range widened by S times it on either side; training is the default's
+  init=K       the head's initial weights drawn anew, as train.py draws them but under seed + 1000 K (K >= 1):
+               another member of an ensemble of heads (head_ensemble_cv.py)
   pretrain=S   the head first takes S Adam steps towards the training parts' identified profiles (gpr's
                targets: profile_pretraining.py), then stage 2 as usual
   encoder=L    the encoder is not frozen: stage 2 fine-tunes it with learning rate L beside the head (its
@@ -146,7 +150,7 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
 
 
 KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr",
-         "pretrain", "hidden", "local", "encoder", "mu")
+         "pretrain", "hidden", "local", "init", "clip", "encoder", "mu")
 HEAD_SIZES = {"hidden": "hidden", "local": "num_local_models"}    # variant kind: the head's option it sets
 WORDS = {"select": ("fit",), "loss": tuple(FORCE_LOSSES)}     # the kinds whose value is a word, and their words
 
@@ -168,6 +172,13 @@ def parse_variant(spec: str) -> dict[str, float | str]:
     return variant
 
 
+def clipped(codes: torch.Tensor, rows: list[int], margin: float) -> torch.Tensor:
+    """`codes` clipped, dimension by dimension, to the range of its `rows` widened by `margin` times that range
+    on either side."""
+    low, high = codes[rows].amin(0), codes[rows].amax(0)
+    return torch.minimum(torch.maximum(codes, low - margin * (high - low)), high + margin * (high - low))
+
+
 def variant_config(cfg: DictConfig, variant: dict[str, float | str]) -> DictConfig:
     """The run's config with the variant's stage-2 epochs, learning rate and loss."""
     run_cfg = copy.deepcopy(cfg)
@@ -183,12 +194,12 @@ def variant_config(cfg: DictConfig, variant: dict[str, float | str]) -> DictConf
 def variant_head(cfg: DictConfig, variant: dict[str, float | str],
                  head: ParameterHead) -> tuple[ParameterHead, dict[str, torch.Tensor]]:
     """The head a variant trains and its initial weights: the run's own `head`, or for hidden=H and local=N a
-    head of that size, built and seeded as train.py builds its components."""
+    head of that size, built and seeded as train.py builds its components (under seed + 1000 K for init=K)."""
     sizes = {HEAD_SIZES[kind]: int(value) for kind, value in variant.items() if kind in HEAD_SIZES}
-    if sizes:
+    if sizes or "init" in variant:
         sized = copy.deepcopy(cfg)
         sized.head.update(sizes)
-        L.seed_everything(cfg.seed, workers=True)
+        L.seed_everything(cfg.seed + 1000 * int(variant.get("init", 0)), workers=True)
         head = build_components(sized)[1]
     return head, copy.deepcopy(head.state_dict())
 
@@ -202,6 +213,10 @@ def main() -> None:
                     "the project root)")
     args = ap.parse_args()
     variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]     # a typo fails before any run
+    for spec, variant in variants:
+        if "clip" in variant:
+            raise SystemExit(f"unsupported variant {spec!r}: clip= bounds the code of a held-out part; run it with "
+                             "part_cv.py")
     for run in args.runs:
         run_dir = Path(run)
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)

@@ -68,6 +68,7 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     ("stage2_variants.py", "bogus", "unknown variant"), ("stage2_variants.py", "loss=mae", "unknown variant"),
     ("stage2_variants.py", "noise=0.3+select=loss", "unknown variant"), ("stage2_variants.py", "loss", "unknown"),
     ("stage2_variants.py", "mu=0.001+select=fit", "combine with neither"),
+    ("stage2_variants.py", "clip=0", "run it with part_cv.py"),
     ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
 def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(script, spec, message, tmp_path):
     done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), "no/such/run",
@@ -75,6 +76,19 @@ def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(scri
                           text=True, timeout=120)
     assert done.returncode != 0 and message in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
+
+
+def test_clipped_codes_stay_within_the_rows_range_widened_by_the_margin():
+    import torch
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from stage2_variants import clipped
+
+    codes = torch.tensor([[0.0, 10.0], [2.0, 20.0], [5.0, 0.0], [-3.0, 15.0]])
+    # rows 0 and 1 span [0, 2] and [10, 20]; a margin of 0.5 widens them to [-1, 3] and [5, 25]
+    assert torch.equal(clipped(codes, [0, 1], 0.0), torch.tensor([[0.0, 10.0], [2.0, 20.0], [2.0, 10.0],
+                                                                  [0.0, 15.0]]))
+    assert torch.equal(clipped(codes, [0, 1], 0.5), torch.tensor([[0.0, 10.0], [2.0, 20.0], [3.0, 5.0],
+                                                                  [-1.0, 15.0]]))
 
 
 def test_pretraining_brings_the_heads_profiles_to_the_targets():
@@ -408,6 +422,37 @@ def test_candidate_cv_table_averages_the_held_out_parts_per_seed_and_reads_the_k
     assert "| pins | seed_0 | force_weight_1000 | +50.00 | +50.00 | force_weight_0 | force_weight_0 |" in printed
     assert "| pins | seed_1 | force_weight_0 | +40.00 | +40.00 | force_weight_0 | force_weight_1000 |" in printed
     assert "| pins | seed_1 | force_weight_1000 | +10.00 | -30.00 | force_weight_0 | force_weight_1000 |" in printed
+
+
+@pytest.mark.slow
+def test_head_ensemble_cv_first_member_is_part_cvs_head_and_the_mean_force_fits_at_least_the_members_mean(
+        trained_run, tmp_path):
+    rows_file, reference = tmp_path / "rows.jsonl", tmp_path / "reference.jsonl"
+    run_script("head_ensemble_cv.py", str(rows_file), str(trained_run.run_dir), "--heads", "3")
+    run_script("part_cv.py", str(reference), str(trained_run.run_dir), "--variants", "default")
+    rows = {r["held_out"]: r for r in map(json.loads, rows_file.read_text().splitlines())}
+    assert sorted(rows) == sorted(("dsub9", "dsub15", "vga"))
+    for line in reference.read_text().splitlines():
+        own = json.loads(line)
+        row = rows[own["held_out"]]
+        assert row["members"][0] == pytest.approx(own["fit"], abs=1e-9) == row["ensemble"][0]
+        assert len(set(row["members"])) == 3                  # three different initial weights, three heads
+        for k in (2, 3):
+            alone = statistics.mean(row["members"][:k])
+            assert row["ensemble"][k - 1] >= alone - 1e-9 * max(1.0, abs(alone))
+
+
+def test_head_ensemble_cv_table_gives_each_ensemble_size_over_the_seeds(tmp_path):
+    rows = [{"run": "runs/dsub/seed_0", "held_out": "a", "members": [60.0, 40.0], "ensemble": [60.0, 70.0]},
+            {"run": "runs/dsub/seed_0", "held_out": "b", "members": [20.0, 40.0], "ensemble": [20.0, 50.0]},
+            {"run": "runs/dsub/seed_1", "held_out": "a", "members": [50.0, 30.0], "ensemble": [50.0, 45.0]},
+            {"run": "runs/dsub/seed_1", "held_out": "b", "members": [10.0, 50.0], "ensemble": [10.0, 35.0]}]
+    printed = printed_table("head_ensemble_cv.py", rows, tmp_path, "--table")
+    # one head: seeds 40, 30, median of 60, 20, 50, 10 = 35; members on average: 40, 35 (median of 50, 30, 40,
+    # 30 = 35); two heads: 60, 40 (median 47.5); two heads minus one per seed: +20, +10
+    sd = statistics.stdev
+    assert (f"| dsub | 35.00 ± {sd([40, 30]):.2f} (35.00) | 37.50 ± {sd([40, 35]):.2f} (35.00) | "
+            f"50.00 ± {sd([60, 40]):.2f} (47.50) | +20.00, +10.00 |") in printed
 
 
 def test_code_probe_scores_a_parameter_the_codes_hold_near_one_and_one_they_do_not_below_zero():
