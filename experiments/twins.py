@@ -8,7 +8,14 @@ part:
   force in place of the measurement, 100 (1 - ||F_nearest - F_pipe||^2 / ||F_pipe - mean||^2), the mean
   over the trials;
 - `agree_second`: the same for the second-nearest training part's code (the scale `agree_nearest` is read on);
-- PIPE's and `nearest`'s FIT(F) against the measured force.
+- PIPE's and `nearest`'s FIT(F) against the measured force;
+- `second`: the second-nearest training part; `best_copy` and `fit_best_copy`: the training part whose code,
+  read by PIPE's head in place of the part's own, fits the part's force best, and that FIT (what a perfect
+  choice among the training parts' profiles would score).
+
+Runs with two force-weight candidates are read through their kept candidate (`common.kept_folder`). The code
+is the head's whole input (with `code.sections`, the encoder's code and the cross-section), as `nearest`
+reads it without validation parts.
 
 Rows are printed and appended to OUT as JSON lines (docs/experiments.md). Usage (one thread):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/twins.py OUT.jsonl runs/conn/seed_0 ...
@@ -21,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import append_row, load_encoder, load_head_stage, load_run
+from common import append_row, kept_folder, load_encoder, load_head_stage, load_run
 
 from pipe.data.batches import stack_clouds
 from pipe.evaluation.context import EvalContext
@@ -41,7 +48,7 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", help="finished seed folders of train.py")
     args = ap.parse_args()
     for run in args.runs:
-        run_dir = Path(run)
+        run_dir = kept_folder(Path(run))
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
         load_encoder(encoder, run_dir)
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
@@ -62,12 +69,17 @@ def main() -> None:
             order = torch.cdist(z[None], codes)[0].argsort()
             with torch.no_grad():
                 pipe = model_forces(ctx, model, z, part)
-                near, second = (model_forces(ctx, model, codes[i], part) for i in order[:2])
+                copies = [model_forces(ctx, model, code, part) for code in codes]
+            near, second = (copies[int(i)] for i in order[:2])
             measured = [p.force for p in part.profiles]
-            row = {"run": str(run_dir), "part": part.name, "twin": train[int(order[0])].name,
+            copied = [agreement(copy, measured) for copy in copies]
+            best = int(np.argmax(copied))
+            row = {"run": str(Path(run)), "part": part.name, "twin": train[int(order[0])].name,
+                   "second": train[int(order[1])].name,
                    "distance": float(torch.dist(z, codes[order[0]])) / typical,
                    "agree_nearest": agreement(near, pipe), "agree_second": agreement(second, pipe),
-                   "fit_pipe": agreement(pipe, measured), "fit_nearest": agreement(near, measured)}
+                   "fit_pipe": agreement(pipe, measured), "fit_nearest": agreement(near, measured),
+                   "best_copy": train[best].name, "fit_best_copy": copied[best]}
             append_row(args.out, row)
 
 

@@ -455,6 +455,22 @@ def test_head_ensemble_cv_table_gives_each_ensemble_size_over_the_seeds(tmp_path
             f"50.00 ± {sd([60, 40]):.2f} (47.50) | +20.00, +10.00 |") in printed
 
 
+@pytest.mark.slow
+def test_twins_finds_the_nearest_training_code_and_the_best_copy_fits_at_least_as_well_as_nearest(trained_run,
+                                                                                                   tmp_path):
+    import torch
+
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("twins.py", str(rows_file), str(trained_run.run_dir))
+    (row,) = [json.loads(line) for line in rows_file.read_text().splitlines()]       # the one test part, dsub26
+    result, codes, index = trained_run.results["pipe"].per_part["dsub26"], trained_run.latents, trained_run.index
+    distances = {name: float(torch.dist(codes[index["dsub26"]], codes[index[name]])) for name in ("dsub9", "dsub15")}
+    assert [row["twin"], row["second"]] == sorted(distances, key=distances.get)[:2]
+    assert row["fit_pipe"] == pytest.approx(result["fit_F"], abs=1e-6)
+    # the twin's profile is one of the copies, so the best copy fits at least as well as `nearest`
+    assert row["fit_best_copy"] >= row["fit_nearest"]
+
+
 def test_code_probe_scores_a_parameter_the_codes_hold_near_one_and_one_they_do_not_below_zero():
     import numpy as np
     sys.path.insert(0, str(ROOT / "experiments"))
