@@ -11,9 +11,14 @@ other non-test parts from the run's own initial weights (`default`, member 1) an
 with the mean force of the first k members, k = 1 .. K. The test parts are never used. The rule, set before
 the results: the ensemble of K replaces the one head if it ties or beats it on every paper domain by the
 spread rule and beats it on at least one. Results: docs/experiments.md.
+With --own-split, instead of the cross-validation, the K heads are trained on the run's own training parts,
+each kept at its lowest validation loss as train.py keeps its one (member 1 is the run's own PIPE), and
+scored alone and as the mean of the first k members on the validation parts, which would choose, and on the
+test parts (the learning curve's 100-part runs, where 10 validation parts can tell). One row per run and split.
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/head_ensemble_cv.py OUT.jsonl runs/pins/seed_{0,1,2}
   python experiments/head_ensemble_cv.py OUT.jsonl --table
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/head_ensemble_cv.py OUT.jsonl RUN ... --own-split
 """
 from __future__ import annotations
 
@@ -21,19 +26,23 @@ import argparse
 import json
 import os
 import statistics
+import tempfile
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 from candidate_ensemble import fit
-from common import append_row
+from common import append_row, kept_folder, load_encoder, load_run
 from part_cv import fold_models
 from profile_pretraining import FITS
-from stage2_variants import parse_variant
+from stage2_variants import parse_variant, variant_head
 from summarise import domain_of
 
+from pipe.data.batches import stack_clouds
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.methods import model_forces
+from pipe.pipeline import build_model
+from pipe.training import fit as fit_module
 
 
 def cross_validate(run: Path, heads: int, out: str) -> None:
@@ -55,17 +64,47 @@ def cross_validate(run: Path, heads: int, out: str) -> None:
                          "ensemble": [fit([part], {part.name: m}, dt) for m in means]})
 
 
+def own_split(run: Path, heads: int, out: str) -> None:
+    """Rows for the run's validation and test parts: each member's FIT(F) alone and the first k members'."""
+    folder = kept_folder(run)
+    cfg, data, (encoder, head, dynamics) = load_run(folder)
+    load_encoder(encoder, folder)
+    train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
+    base = build_model(cfg, data, (encoder, head, dynamics))
+    index = {p.name: i for i, p in enumerate(train + val + test)}
+    latents, _ = base.latent_distribution(stack_clouds(train + val + test))
+    dt = 1.0 / cfg.data.rate_hz
+    members = []
+    for spec in ["default", *(f"init={k}" for k in range(1, heads))]:
+        trained, initial = variant_head(cfg, parse_variant(spec), head)
+        trained.load_state_dict(initial)
+        model = base.with_head(trained)
+        with tempfile.TemporaryDirectory() as tmp:
+            fit_module.fit_head(cfg, model, latents, index, train, val, Path(tmp), False, [])
+        model.eval()
+        ctx = EvalContext(model, latents, index, train, dt, cfg.seed)
+        members.append({p.name: model_forces(ctx, model, ctx.latent(p), p) for p in val + test})
+    for split, parts in (("val", val), ("test", test)):
+        means = [{p.name: [np.mean([m[p.name][t].astype(np.float64) for m in members[:k]], axis=0)
+                           for t in range(len(p.profiles))] for p in parts} for k in range(1, heads + 1)]
+        append_row(out, {"run": str(run), "split": split, "members": [fit(parts, m, dt) for m in members],
+                         "ensemble": [fit(parts, m, dt) for m in means]})
+
+
 def table(rows: list[dict]) -> str:
-    """Per domain: the one head's, the members' average and each ensemble size's FIT(F), the mean over the
-    held-out parts per seed, then mean ± std over the seeds (median over every held-out part and seed), and
-    the ensemble of all members minus the one head, seed by seed."""
+    """Per domain (and split, for --own-split's rows): the one head's, the members' average and each ensemble
+    size's FIT(F), the mean over the held-out parts per seed, then mean ± std over the seeds (median over
+    every held-out part and seed), and the ensemble of all members minus the one head, seed by seed."""
     heads = len(rows[0]["ensemble"])
     columns = {"one head": lambda r: r["members"][0], "a member, on average": lambda r: statistics.fmean(r["members"]),
                **{f"{k} heads": (lambda r, k=k: r["ensemble"][k - 1]) for k in range(2, heads + 1)}}
     lines = ["| domain | " + " | ".join(columns) + f" | {heads} heads − one, per seed |",
              "| --- |" + " --- |" * (len(columns) + 1)]
-    for domain in dict.fromkeys(domain_of(r["run"]) for r in rows):
-        mine = [r for r in rows if domain_of(r["run"]) == domain]
+    def group(row: dict) -> str:
+        return f"{domain_of(row['run'])} {row['split']}" if "split" in row else domain_of(row["run"])
+
+    for domain in dict.fromkeys(map(group, rows)):
+        mine = [r for r in rows if group(r) == domain]
         runs = list(dict.fromkeys(r["run"] for r in mine))
         cells = []
         for value in columns.values():
@@ -83,6 +122,8 @@ def main() -> None:
     ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
     ap.add_argument("--heads", type=int, default=5, help="members of the ensemble, the run's own head among them")
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap.add_argument("--own-split", action="store_true", help="train on the run's own split and score its "
+                    "validation and test parts instead of the cross-validation")
     args = ap.parse_args()
     if args.table:
         print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
@@ -90,7 +131,7 @@ def main() -> None:
     if args.heads < 2:
         raise SystemExit(f"--heads {args.heads}: an ensemble needs at least 2 heads")
     for run in args.runs:
-        cross_validate(Path(run), args.heads, args.out)
+        (own_split if args.own_split else cross_validate)(Path(run), args.heads, args.out)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
 """Issue 9, "a PIPE that wins": stage-2 variants on finished runs' stage-1 encoders.
 
-For each run folder (a seed of `train.py`, e.g. runs/conn/seed_0 from `dvc repro`) the run's config and
-its best stage-1 weights are loaded, and for each variant the head is trained again from the run's own
-initial weights, then PIPE and `nearest` are scored (FIT(F)) on the validation parts, which choose, and on
-the test parts, which report. `default` reproduces the run's own PIPE result to the digit. Variants:
+For each run folder (a seed of `train.py`, e.g. runs/conn/seed_0 from `dvc repro`; its kept candidate where
+it trained two force weights, `common.kept_folder`) the run's config and its best stage-1 weights are
+loaded, and for each variant the head is trained again from the run's own initial weights, then PIPE and
+`nearest` are scored (FIT(F)) on the validation parts, which choose, and on the test parts, which report.
+`default` reproduces the run's own PIPE result to the digit. Variants:
   default      the paper's stage 2
   wd=W         AdamW with weight decay W
   std          the head sees codes standardised by the training parts' mean and spread
@@ -53,7 +54,7 @@ from pathlib import Path
 
 import lightning as L
 import torch
-from common import load_encoder, load_head_stage, load_run, pipe_fit, pooled_features, score
+from common import kept_folder, load_encoder, load_head_stage, load_run, pipe_fit, pooled_features, score
 from lightning.pytorch.callbacks import EMAWeightAveraging
 from omegaconf import DictConfig
 from profile_pretraining import FITS, pretrain_head, profile_targets
@@ -218,7 +219,7 @@ def main() -> None:
             raise SystemExit(f"unsupported variant {spec!r}: clip= bounds the code of a held-out part; run it with "
                              "part_cv.py")
     for run in args.runs:
-        run_dir = Path(run)
+        run_dir = kept_folder(Path(run))
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)
         load_encoder(encoder, run_dir)
         own_encoder = copy.deepcopy(encoder.state_dict())
@@ -255,7 +256,7 @@ def main() -> None:
                 trained.load_state_dict(kept.pop("state"))
             with torch.no_grad():
                 codes = candidate.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else latents
-            score(args.out, {"run": str(run_dir), "variant": spec, "seconds": time.perf_counter() - start, **kept},
+            score(args.out, {"run": str(Path(run)), "variant": spec, "seconds": time.perf_counter() - start, **kept},
                   cfg, data, candidate, codes, index)
 
 if __name__ == "__main__":

@@ -440,6 +440,13 @@ def test_head_ensemble_cv_first_member_is_part_cvs_head_and_the_mean_force_fits_
         for k in (2, 3):
             alone = statistics.mean(row["members"][:k])
             assert row["ensemble"][k - 1] >= alone - 1e-9 * max(1.0, abs(alone))
+    # --own-split: trained on the run's own split, member 1 is the run's own PIPE on its test parts
+    own_file = tmp_path / "own.jsonl"
+    run_script("head_ensemble_cv.py", str(own_file), str(trained_run.run_dir), "--heads", "2", "--own-split")
+    own = {r["split"]: r for r in map(json.loads, own_file.read_text().splitlines())}
+    assert sorted(own) == ["test", "val"]
+    assert own["test"]["members"][0] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-6)
+    assert own["test"]["ensemble"][1] >= statistics.mean(own["test"]["members"]) - 1e-9
 
 
 def test_head_ensemble_cv_table_gives_each_ensemble_size_over_the_seeds(tmp_path):
@@ -453,6 +460,14 @@ def test_head_ensemble_cv_table_gives_each_ensemble_size_over_the_seeds(tmp_path
     sd = statistics.stdev
     assert (f"| dsub | 35.00 ± {sd([40, 30]):.2f} (35.00) | 37.50 ± {sd([40, 35]):.2f} (35.00) | "
             f"50.00 ± {sd([60, 40]):.2f} (47.50) | +20.00, +10.00 |") in printed
+    # --own-split's rows: one per run and split, grouped by both
+    own = [{"run": "runs/curve/rect/train_100/seed_0", "split": "test", "members": [70.0, 80.0],
+            "ensemble": [70.0, 78.0]},
+           {"run": "runs/curve/rect/train_100/seed_1", "split": "test", "members": [60.0, 50.0],
+            "ensemble": [60.0, 58.0]}]
+    printed = printed_table("head_ensemble_cv.py", own, tmp_path, "--table")
+    assert (f"| rect/train_100 test | 65.00 ± {sd([70, 60]):.2f} (65.00) | 65.00 ± {sd([75, 55]):.2f} (65.00) | "
+            f"68.00 ± {sd([78, 58]):.2f} (68.00) | +8.00, -2.00 |") in printed
 
 
 @pytest.mark.slow
