@@ -3,16 +3,17 @@ leave-one-part-out cross-validation over the domain's non-test parts.
 
 A run of the defaults trains two candidates (stage 1's force weights 0 and 1000) and keeps the one of the lower
 validation loss: on the paper domains 1 to 3 validation parts, which on the test parts picked the worse of the
-two in 5 of 9 runs (docs/experiments.md). Here, per candidate, every training and validation part is held out
-in turn (`part_cv.fold_models`: the head trained again on the other non-test parts, on the candidate's stage-1
-encoder) and scored on its trials: the candidate's PIPE, `nearest` and gpr on the candidate's codes (without
-validation parts: gpr's kernel by its marginal likelihood, both reading what the head reads), gpr with the
-length scale chosen on the held-out part itself (`gpr_hindsight`, an optimistic bound: the best gpr of its
-grid), and, once both candidates are through, the mean of the two candidates' PIPE forces (`ensemble`). The
-test parts are never used. Caveat: the force-weighted candidate's stage 1 saw the recordings of the training
-parts it holds out (stage 1 is not trained again per fold). The rule, set before the results: the ensemble
-replaces the kept candidate if it ties or beats it on every paper domain by the spread rule and beats it on at
-least one. One JSON line per run, candidate (or `ensemble`) and held-out part. Results: docs/experiments.md.
+two in 4 of 9 runs (docs/experiments/candidate_ensemble.jsonl). Here, per candidate, every training and
+validation part is held out in turn (`part_cv.fold_models`: the head trained again on the other non-test
+parts, on the candidate's stage-1 encoder) and scored on its trials: the candidate's PIPE, `nearest` and gpr
+on the candidate's codes (without validation parts: gpr's kernel by its marginal likelihood, both reading
+what the head reads), gpr with its input and length scale chosen on the held-out part itself
+(`gpr_hindsight`, an optimistic bound: the best gpr of its grid), and, once both candidates are through, the
+mean of the two candidates' PIPE forces (`ensemble`). The test parts are never used. Caveat: the
+force-weighted candidate's stage 1 saw the recordings of the training parts it holds out (stage 1 is not
+trained again per fold). The rule, set before the results: the ensemble replaces the kept candidate if it
+ties or beats it on every paper domain by the spread rule and beats it on at least one. One JSON line per
+run, candidate (or `ensemble`) and held-out part. Results: docs/experiments.md.
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/candidate_cv.py OUT.jsonl runs/pins/seed_{0,1,2}
   python experiments/candidate_cv.py OUT.jsonl --table
