@@ -105,17 +105,21 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str) -> I
             encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
             trained, initial = heads[spec]
             trained.load_state_dict(initial)
-            model = PIPEModel(encoder, trained, dynamics, *scales, sections=unscaled.sections)
+            own = variant.get("sections", 1) or unscaled.sections is None   # the head reads the cross-section
+            sections, read, read_logvars, read_spread = ((unscaled.sections, latents, logvars, spread) if own else
+                                                         (None, *(t[..., :encoder.latent_dim]
+                                                                  for t in (latents, logvars, spread))))
+            model = PIPEModel(encoder, trained, dynamics, *scales, sections=sections)
             if "pretrain" in variant:
                 pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
             run_cfg = variant_config(cfg, variant)
-            fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
-                                                 lambda: math.nan, {}, clouds)
+            fit_module.HeadStage = variant_stage(variant, read_spread, read_logvars, run_cfg.stages.head.epochs,
+                                                 steps, lambda: math.nan, {}, clouds)
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
-                fit_module.fit_head(run_cfg, model, latents, index, train, [], Path(tmp), False, [])
+                fit_module.fit_head(run_cfg, model, read, index, train, [], Path(tmp), False, [])
             with torch.no_grad():
-                codes = model.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else latents
+                codes = model.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else read
             if "clip" in variant:
                 codes = clipped(codes, [index[p.name] for p in train], float(variant["clip"]))
             yield Fold(cfg, fold, held_out, spec, model, codes, index, time.perf_counter() - start)
@@ -138,6 +142,8 @@ def main() -> None:
         if variant.keys() & {"select", "std", "last"}:
             raise SystemExit(f"unsupported variant {spec!r}: a fold has no validation parts to select on, and "
                              "std and last are not supported here")
+        if variant.get("sections", 0) != 0:
+            raise SystemExit(f"unsupported variant {spec!r}: only sections=0 (the head without the cross-section)")
     for run in args.runs:
         for fold in fold_models(Path(run), variants, args.fits):
             fit = pipe_fit(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test")

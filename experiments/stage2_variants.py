@@ -27,6 +27,8 @@ loaded, and for each variant the head is trained again from the run's own initia
   local=N      a head of N local models per parameter instead of the configured number (head.num_local_models)
   clip=S       (part_cv.py only) PIPE reads the held-out part's code clipped, dimension by dimension, to the
                training parts' range widened by S times it on either side; training is the default's
+  sections=0   (part_cv.py only, on runs with code.sections) the head reads the encoder's code alone, without the
+               cloud's cross-section: a head of that input, built and seeded as train.py builds it
   init=K       the head's initial weights drawn anew, as train.py draws them but under seed + 1000 K (K >= 1):
                another member of an ensemble of heads (head_ensemble_cv.py)
   pretrain=S   the head first takes S Adam steps towards the training parts' identified profiles (gpr's
@@ -151,7 +153,8 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
 
 
 KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr",
-         "pretrain", "hidden", "local", "init", "clip", "encoder", "mu")
+         "pretrain", "hidden", "local", "init", "clip", "sections", "encoder", "mu")
+PART_CV_ONLY = ("clip", "sections")     # the kinds that change what a held-out part's code is
 HEAD_SIZES = {"hidden": "hidden", "local": "num_local_models"}    # variant kind: the head's option it sets
 WORDS = {"select": ("fit",), "loss": tuple(FORCE_LOSSES)}     # the kinds whose value is a word, and their words
 
@@ -195,11 +198,14 @@ def variant_config(cfg: DictConfig, variant: dict[str, float | str]) -> DictConf
 def variant_head(cfg: DictConfig, variant: dict[str, float | str],
                  head: ParameterHead) -> tuple[ParameterHead, dict[str, torch.Tensor]]:
     """The head a variant trains and its initial weights: the run's own `head`, or for hidden=H and local=N a
-    head of that size, built and seeded as train.py builds its components (under seed + 1000 K for init=K)."""
+    head of that size (or input, for sections=0), built and seeded as train.py builds its components (under
+    seed + 1000 K for init=K)."""
     sizes = {HEAD_SIZES[kind]: int(value) for kind, value in variant.items() if kind in HEAD_SIZES}
-    if sizes or "init" in variant:
+    if sizes or {"init", "sections"} & variant.keys():
         sized = copy.deepcopy(cfg)
         sized.head.update(sizes)
+        if "sections" in variant:
+            sized.code.sections = bool(variant["sections"])
         L.seed_everything(cfg.seed + 1000 * int(variant.get("init", 0)), workers=True)
         head = build_components(sized)[1]
     return head, copy.deepcopy(head.state_dict())
@@ -215,9 +221,9 @@ def main() -> None:
     args = ap.parse_args()
     variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]     # a typo fails before any run
     for spec, variant in variants:
-        if "clip" in variant:
-            raise SystemExit(f"unsupported variant {spec!r}: clip= bounds the code of a held-out part; run it with "
-                             "part_cv.py")
+        if set(PART_CV_ONLY) & variant.keys():
+            raise SystemExit(f"unsupported variant {spec!r}: {' and '.join(PART_CV_ONLY)} change the code of a "
+                             "held-out part; run it with part_cv.py")
     for run in args.runs:
         run_dir = kept_folder(Path(run))
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)

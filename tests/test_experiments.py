@@ -68,7 +68,8 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     ("stage2_variants.py", "bogus", "unknown variant"), ("stage2_variants.py", "loss=mae", "unknown variant"),
     ("stage2_variants.py", "noise=0.3+select=loss", "unknown variant"), ("stage2_variants.py", "loss", "unknown"),
     ("stage2_variants.py", "mu=0.001+select=fit", "combine with neither"),
-    ("stage2_variants.py", "clip=0", "run it with part_cv.py"),
+    ("stage2_variants.py", "clip=0", "run it with part_cv.py"), ("stage2_variants.py", "sections=0", "part_cv.py"),
+    ("part_cv.py", "sections=1", "only sections=0"),
     ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
 def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(script, spec, message, tmp_path):
     done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), "no/such/run",
@@ -196,14 +197,15 @@ def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tm
 @pytest.mark.slow
 def test_part_cv_holds_out_each_non_test_part_in_turn(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
-    run_script("part_cv.py", str(rows_file), str(trained_run.run_dir), "--variants", "default,loss=mse,mu=0.01")
+    variants = ("default", "loss=mse", "mu=0.01", "sections=0")
+    run_script("part_cv.py", str(rows_file), str(trained_run.run_dir), "--variants", ",".join(variants))
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     # every training and validation part of the tiny domain held out once per variant; the test part never
     assert sorted((row["held_out"], row["variant"]) for row in rows) == sorted(
-        (part, variant) for part in ("dsub9", "dsub15", "vga") for variant in ("default", "loss=mse", "mu=0.01"))
+        (part, variant) for part in ("dsub9", "dsub15", "vga") for variant in variants)
     by_case = {(row["held_out"], row["variant"]): row["fit"] for row in rows}
     assert all(by_case[(part, "default")] != pytest.approx(by_case[(part, other)], abs=1e-6)
-               for part in ("dsub9", "dsub15", "vga") for other in ("loss=mse", "mu=0.01"))
+               for part in ("dsub9", "dsub15", "vga") for other in variants[1:])
 
 
 def test_part_cv_table_averages_the_held_out_parts_per_seed(tmp_path):
