@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import append_row, load_encoder, load_run, pooled_features
+from common import append_row, kept_folder, load_encoder, load_run, pooled_features
 from parameter_codes import generator_parts, hidden_parameters, shape_parameters
 from sklearn.linear_model import RidgeCV
 from summarise import domain_of, spread
@@ -50,8 +50,9 @@ def probe(codes_train: np.ndarray, codes_test: np.ndarray, values_train: np.ndar
 def run_row(run_dir: Path, layer: str) -> dict:
     """Each parameter's R^2 on the run's test parts, from its encoder's codes, its pooled features or the
     clouds' cross-sections (`layer`)."""
-    cfg, data, (encoder, head, dynamics) = load_run(run_dir)
-    load_encoder(encoder, run_dir)
+    folder = kept_folder(run_dir)       # the kept candidate's, where the run trained two force weights
+    cfg, data, (encoder, head, dynamics) = load_run(folder)
+    load_encoder(encoder, folder)
     train, test = data.splits["train"], data.splits["test"]
     model = build_model(cfg, data, (encoder, head, dynamics))
     clouds = stack_clouds(train + test)

@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 import torch
-from common import load_encoder, load_run, pooled_features, score
+from common import kept_folder, load_encoder, load_run, pooled_features, score
 from omegaconf import DictConfig, OmegaConf
 
 from pipe.data.batches import stack_clouds
@@ -135,8 +135,9 @@ def main() -> None:
         raise SystemExit(f"unknown kind of code {', '.join(sorted(unknown))}: the kinds are {', '.join(KINDS)}")
     for run in args.runs:
         run_dir = Path(run)
-        cfg, data, (encoder, head, dynamics) = load_run(run_dir)
-        load_encoder(encoder, run_dir)
+        folder = kept_folder(run_dir)       # the kept candidate's, where the run trained two force weights
+        cfg, data, (encoder, head, dynamics) = load_run(folder)
+        load_encoder(encoder, folder)
         initial = copy.deepcopy(head.state_dict())
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         ordered = train + val + test
