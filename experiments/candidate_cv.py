@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from candidate_ensemble import fit
-from common import append_row
+from common import append_row, kept_folder, two_candidates
 from omegaconf import OmegaConf
 from part_cv import fold_models
 from profile_pretraining import FITS
@@ -44,20 +44,12 @@ from pipe.training.force_choice import CANDIDATE_PREFIX
 METHODS = ["pipe", "nearest", "gpr"]
 
 
-def candidates_of(run: Path) -> list[Path]:
-    """The run's two candidate folders, by force weight."""
-    found = sorted(run.glob(f"{CANDIDATE_PREFIX}*"), key=lambda c: float(c.name.removeprefix(CANDIDATE_PREFIX)))
-    if len(found) != 2:
-        raise SystemExit(f"{run}: needs two candidates ({CANDIDATE_PREFIX}<w>/), found {len(found)}")
-    return found
-
-
 def cross_validate(run: Path, out: str, fits: str) -> None:
     """Rows for every candidate and held-out part, then the ensemble's."""
-    chosen = f"{CANDIDATE_PREFIX}{json.loads((run / 'training.json').read_text())['force_weight']['chosen']:g}"
+    chosen = kept_folder(run).name
     forces: dict[str, dict[str, list[np.ndarray]]] = defaultdict(dict)
     parts, dt = {}, None
-    for candidate in candidates_of(run):
+    for candidate in two_candidates(run):
         for fold in fold_models(candidate, [("default", {})], fits):
             cfg, held_out = fold.cfg, fold.held_out
             dt = 1.0 / cfg.data.rate_hz

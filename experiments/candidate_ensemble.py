@@ -9,17 +9,15 @@ Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
-from common import append_row, load_encoder, load_head_stage, load_run
+from common import append_row, kept_folder, load_encoder, load_head_stage, load_run, two_candidates
 
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.methods import model_forces
 from pipe.evaluation.metrics import force_metrics
-from pipe.pipeline import build_model, latent_codes
-from pipe.training.force_choice import CANDIDATE_PREFIX
+from pipe.pipeline import build_model, latent_codes, training_record
 
 
 def candidate_forces(candidate: Path) -> tuple[dict, dict[str, list[np.ndarray]], float]:
@@ -44,17 +42,14 @@ def fit(parts: list, forces: dict[str, list[np.ndarray]], dt: float) -> float:
 
 
 def scores(run: Path) -> dict:
-    training = json.loads((run / "training.json").read_text())["force_weight"]
-    candidates = sorted(run.glob(f"{CANDIDATE_PREFIX}*"), key=lambda c: float(c.name.removeprefix(CANDIDATE_PREFIX)))
-    if len(candidates) != 2:
-        raise SystemExit(f"{run}: needs two candidates ({CANDIDATE_PREFIX}<w>/), found {len(candidates)}")
+    candidates = two_candidates(run)
     predicted = {}
     for candidate in candidates:
         splits, predicted[candidate.name], dt = candidate_forces(candidate)
     mean = {name: [(a.astype(np.float64) + b) / 2 for a, b in zip(*(predicted[c.name][name] for c in candidates))]
             for name in predicted[candidates[0].name]}      # in float64: no rounding of the mean itself
-    chosen = f"{CANDIDATE_PREFIX}{training['chosen']:g}"
-    row = {"run": str(run), "chosen_weight": training["chosen"]}
+    chosen = kept_folder(run).name
+    row = {"run": str(run), "chosen_weight": training_record(run)["force_weight"]["chosen"]}
     for split in ("val", "test"):
         row[split] = {c.name: fit(splits[split], predicted[c.name], dt) for c in candidates}
         row[split] |= {"chosen": row[split][chosen], "ensemble": fit(splits[split], mean, dt)}

@@ -15,8 +15,8 @@ from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
-from pipe.pipeline import build_components, build_model, load_domain
-from pipe.training.force_choice import CANDIDATE_PREFIX
+from pipe.pipeline import build_components, build_model, load_domain, training_record, weights_dir
+from pipe.training.force_choice import CANDIDATE_PREFIX, candidate_dirs
 
 
 def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, PreparedDomain, tuple]:
@@ -35,9 +35,15 @@ def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, Prepare
 
 def kept_folder(run_dir: Path) -> Path:
     """The folder of the run's kept candidate where it trained two force weights, else the run's own."""
-    training = run_dir / "training.json"
-    chosen = json.loads(training.read_text()).get("force_weight", {}).get("chosen") if training.is_file() else None
-    return run_dir / f"{CANDIDATE_PREFIX}{chosen:g}" if chosen is not None else run_dir
+    return weights_dir(run_dir, training_record(run_dir))
+
+
+def two_candidates(run_dir: Path) -> list[Path]:
+    """The two candidates' folders of a run that chose its force weight, by weight; refused otherwise."""
+    found = sorted(candidate_dirs(run_dir), key=lambda c: float(c.name.removeprefix(CANDIDATE_PREFIX)))
+    if len(found) != 2:
+        raise SystemExit(f"{run_dir}: needs two candidates ({CANDIDATE_PREFIX}<w>/), found {len(found)}")
+    return found
 
 
 def oracle_context(run_dir: Path) -> tuple[DictConfig, list, EvalContext]:

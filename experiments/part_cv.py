@@ -105,10 +105,11 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str) -> I
             encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
             trained, initial = heads[spec]
             trained.load_state_dict(initial)
-            own = variant.get("sections", 1) or unscaled.sections is None   # the head reads the cross-section
-            sections, read, read_logvars, read_spread = ((unscaled.sections, latents, logvars, spread) if own else
-                                                         (None, *(t[..., :encoder.latent_dim]
-                                                                  for t in (latents, logvars, spread))))
+            if variant.get("sections", 1) or unscaled.sections is None:    # it reads what the run's head reads
+                sections, read, read_logvars, read_spread = unscaled.sections, latents, logvars, spread
+            else:                                                           # sections=0: the encoder's code alone
+                width = encoder.latent_dim
+                sections, read, read_logvars, read_spread = None, latents[:, :width], logvars[:, :width], spread[:width]
             model = PIPEModel(encoder, trained, dynamics, *scales, sections=sections)
             if "pretrain" in variant:
                 pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
