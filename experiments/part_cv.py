@@ -39,6 +39,7 @@ from summarise import domain_of
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import PartData, PreparedDomain, data_scales
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.sections import SectionCode
 from pipe.pipeline import build_model
 from pipe.training import fit as fit_module
 
@@ -61,6 +62,21 @@ def table(rows: list[dict]) -> str:
         lines.append(f"| {domain} | {variant} | {len(means)} | {statistics.fmean(means):.2f} ± {spread:.2f} | "
                      f"{statistics.median(cases.values()):.2f} | {above} |")
     return "\n".join(lines)
+
+
+def scaled_sections(sections: SectionCode, factor: float) -> SectionCode:
+    """A copy of the cross-section `sections` whose standardised numbers come out multiplied by `factor`."""
+    scaled = copy.deepcopy(sections)
+    scaled.std = sections.std / factor
+    return scaled
+
+
+def section_weights(width: int, size: int, factor: float) -> torch.Tensor:
+    """Per column of a code of `size` numbers, the encoder's `width` first: 1 for the encoder's, `factor` for
+    the cross-section's."""
+    weights = torch.ones(size)
+    weights[width:] = factor
+    return weights
 
 
 class Fold(NamedTuple):
@@ -105,11 +121,16 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str) -> I
             encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
             trained, initial = heads[spec]
             trained.load_state_dict(initial)
-            if variant.get("sections", 1) or unscaled.sections is None:    # it reads what the run's head reads
+            factor = float(variant.get("sections", 1))
+            if unscaled.sections is None or factor == 1:                   # it reads what the run's head reads
                 sections, read, read_logvars, read_spread = unscaled.sections, latents, logvars, spread
-            else:                                                           # sections=0: the encoder's code alone
+            elif factor == 0:                                               # the encoder's code alone
                 width = encoder.latent_dim
                 sections, read, read_logvars, read_spread = None, latents[:, :width], logvars[:, :width], spread[:width]
+            else:                                                           # the cross-section weighed by factor
+                sections = scaled_sections(unscaled.sections, factor)
+                weights = section_weights(encoder.latent_dim, latents.shape[1], factor)
+                read, read_logvars, read_spread = latents * weights, logvars, spread * weights
             model = PIPEModel(encoder, trained, dynamics, *scales, sections=sections)
             if "pretrain" in variant:
                 pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
@@ -143,8 +164,8 @@ def main() -> None:
         if variant.keys() & {"select", "std", "last"}:
             raise SystemExit(f"unsupported variant {spec!r}: a fold has no validation parts to select on, and "
                              "std and last are not supported here")
-        if variant.get("sections", 0) != 0:
-            raise SystemExit(f"unsupported variant {spec!r}: only sections=0 (the head without the cross-section)")
+        if variant.get("sections", 0) < 0:
+            raise SystemExit(f"unsupported variant {spec!r}: the cross-section's weight is at least 0")
     for run in args.runs:
         for fold in fold_models(Path(run), variants, args.fits):
             fit = pipe_fit(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test")

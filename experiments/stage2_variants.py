@@ -12,7 +12,8 @@ loaded, and for each variant the head is trained again from the run's own initia
   sample=S     training codes drawn from the encoder's posterior, its standard deviation times S
   last         the last epoch's head, not the one of the lowest validation loss
   ema=H        the head's weights averaged exponentially over about H epochs (Lightning's EMAWeightAveraging,
-               decay 1 - 1 / (H x steps per epoch)); validated and kept as the average
+               decay 1 - 1 / (H x steps per epoch)); validated, checkpointed and kept as the average (before
+               2026-11-27 the checkpoint, and so the head kept, held the raw weights: `KeptAverage`)
   cosine       the learning rate annealed from stages.head.lr to 0 by a cosine over the epochs
   epochs=E     E epochs instead of stages.head.epochs (the lowest validation loss kept, as by default)
   select=fit   the head of the epoch with the highest FIT(F) of PIPE on the validation parts (the reported
@@ -27,8 +28,9 @@ loaded, and for each variant the head is trained again from the run's own initia
   local=N      a head of N local models per parameter instead of the configured number (head.num_local_models)
   clip=S       (part_cv.py only) PIPE reads the held-out part's code clipped, dimension by dimension, to the
                training parts' range widened by S times it on either side; training is the default's
-  sections=0   (part_cv.py only, on runs with code.sections) the head reads the encoder's code alone, without the
-               cloud's cross-section: a head of that input, built and seeded as train.py builds it
+  sections=S   (part_cv.py only, on runs with code.sections) the cloud's cross-section weighed by S against the
+               encoder's code in the head's input: its standardised numbers times S; S=0, the head reads the
+               encoder's code alone (a head of that input, built and seeded as train.py builds it)
   init=K       the head's initial weights drawn anew, as train.py draws them but under seed + 1000 K (K >= 1):
                another member of an ensemble of heads (head_ensemble_cv.py)
   pretrain=S   the head first takes S Adam steps towards the training parts' identified profiles (gpr's
@@ -81,6 +83,17 @@ class Standardised(torch.nn.Module):
 
     def forward(self, z, depth_max):
         return self.inner((z - self.m) / self.s, depth_max)
+
+
+class KeptAverage(EMAWeightAveraging):
+    """Lightning's EMA of the weights, whose average the stage's weights-only best checkpoint also holds: Lightning
+    puts the average only into full checkpoints (a callback's `on_save_checkpoint` is skipped for weights-only
+    ones), so without this the head kept is the raw one of the epoch whose average validated best."""
+
+    def average_state(self) -> dict[str, torch.Tensor]:
+        """The averaged module's state, named as the module's own."""
+        return {name.removeprefix("module."): value for name, value in self._average_model.state_dict().items()
+                if name.startswith("module.")}
 
 
 def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
@@ -146,8 +159,13 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
 
         def configure_callbacks(self):
             if "ema" in variant:
-                return [EMAWeightAveraging(decay=1.0 - 1.0 / (variant["ema"] * steps_per_epoch))]
+                return [KeptAverage(decay=1.0 - 1.0 / (variant["ema"] * steps_per_epoch))]
             return []
+
+        def on_save_checkpoint(self, checkpoint):
+            averaging = next((c for c in self.trainer.callbacks if isinstance(c, KeptAverage)), None)
+            if averaging is not None and "current_model_state" not in checkpoint:   # weights-only: the average
+                checkpoint["state_dict"] = averaging.average_state()                 #   is not in it yet
 
     return Stage
 
@@ -199,9 +217,9 @@ def variant_head(cfg: DictConfig, variant: dict[str, float | str],
                  head: ParameterHead) -> tuple[ParameterHead, dict[str, torch.Tensor]]:
     """The head a variant trains and its initial weights: the run's own `head`, or for hidden=H and local=N a
     head of that size (or input, for sections=0), built and seeded as train.py builds its components (under
-    seed + 1000 K for init=K)."""
+    seed + 1000 K for init=K); sections=S with S > 0 reads an input of the run's size."""
     sizes = {HEAD_SIZES[kind]: int(value) for kind, value in variant.items() if kind in HEAD_SIZES}
-    if sizes or {"init", "sections"} & variant.keys():
+    if sizes or "init" in variant or variant.get("sections") == 0:
         sized = copy.deepcopy(cfg)
         sized.head.update(sizes)
         if "sections" in variant:

@@ -1,9 +1,10 @@
 """Issue 9, "a PIPE that wins": stage 1 trained with augmented clouds.
 
-For each run folder (a seed of `train.py`, e.g. runs/conn/seed_0 from `dvc repro`) the VAE is trained again
-from the run's own initial weights and seed at the paper's settings, each training cloud changed at every
-step by the variant, then the paper's stage 2, and PIPE and `nearest` are scored (FIT(F)) on the validation
-parts, which choose, and the test parts, which report. Validation clouds and the codes the head and the
+For each run folder (a seed of `train.py`, e.g. runs/conn/seed_0 from `dvc repro`; its kept candidate where
+it trained two force weights, `common.kept_folder`) the VAE is trained again from the run's own initial weights
+and seed at the run's settings, each training cloud changed at every step by the variant, then the run's
+stage 2, and PIPE and `nearest` are scored (FIT(F)) on the validation parts, which choose, and the test parts,
+which report. Validation clouds and the codes the head and the
 evaluation read are never augmented. Variants:
   none         no augmentation (the same retraining, so that rows differ by the augmentation alone)
   rotate       a random rotation about the insertion axis z (the clouds are centred), per cloud and step:
@@ -27,7 +28,7 @@ import tempfile
 from pathlib import Path
 
 import torch
-from common import load_run, score
+from common import kept_folder, load_run, score
 
 from pipe.data.batches import stack_clouds
 from pipe.data.dataset import load_dataset
@@ -120,7 +121,7 @@ def main() -> None:
         for variant in args.variants.split(","):
             rotate, scale, extra = parse(variant)
             run_dir = Path(run)
-            cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+            cfg, data, (encoder, head, dynamics) = load_run(kept_folder(run_dir))
             train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
             model = build_model(cfg, data, (encoder, head, dynamics))
             draws = redrawn_clouds(data.dataset_dir, train, cfg.data.cloud_seed, extra) if extra else None

@@ -69,7 +69,7 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     ("stage2_variants.py", "noise=0.3+select=loss", "unknown variant"), ("stage2_variants.py", "loss", "unknown"),
     ("stage2_variants.py", "mu=0.001+select=fit", "combine with neither"),
     ("stage2_variants.py", "clip=0", "run it with part_cv.py"), ("stage2_variants.py", "sections=0", "part_cv.py"),
-    ("part_cv.py", "sections=1", "only sections=0"),
+    ("part_cv.py", "sections=-1", "at least 0"),
     ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
 def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(script, spec, message, tmp_path):
     done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), "no/such/run",
@@ -197,15 +197,33 @@ def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tm
 @pytest.mark.slow
 def test_part_cv_holds_out_each_non_test_part_in_turn(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
-    variants = ("default", "loss=mse", "mu=0.01", "sections=0")
+    # ema=2 differs only if the averaged head is the one kept (before KeptAverage, the default's to the digit)
+    variants = ("default", "loss=mse", "mu=0.01", "ema=2", "sections=0", "sections=3", "sections=1")
     run_script("part_cv.py", str(rows_file), str(trained_run.run_dir), "--variants", ",".join(variants))
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     # every training and validation part of the tiny domain held out once per variant; the test part never
     assert sorted((row["held_out"], row["variant"]) for row in rows) == sorted(
         (part, variant) for part in ("dsub9", "dsub15", "vga") for variant in variants)
     by_case = {(row["held_out"], row["variant"]): row["fit"] for row in rows}
+    parts = ("dsub9", "dsub15", "vga")
     assert all(by_case[(part, "default")] != pytest.approx(by_case[(part, other)], abs=1e-6)
-               for part in ("dsub9", "dsub15", "vga") for other in variants[1:])
+               for part in parts for other in variants[1:-1])
+    # the cross-section weighed by 1 is the default's input, the same head: the same FIT to the digit
+    assert all(by_case[(part, "sections=1")] == pytest.approx(by_case[(part, "default")], abs=1e-9) for part in parts)
+
+
+def test_scaled_sections_multiply_the_cross_section_alone():
+    import torch
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from part_cv import scaled_sections, section_weights
+
+    from pipe.model.sections import SectionCode
+
+    clouds = torch.rand(3, 64, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([2.0, 3.0, 10.0])
+    sections = SectionCode.fitted(clouds)
+    assert torch.allclose(scaled_sections(sections, 2.5)(clouds), 2.5 * sections(clouds))
+    assert torch.equal(sections.std, SectionCode.fitted(clouds).std)          # the original is left alone
+    assert torch.equal(section_weights(2, 5, 0.5), torch.tensor([1.0, 1.0, 0.5, 0.5, 0.5]))
 
 
 def test_part_cv_table_averages_the_held_out_parts_per_seed(tmp_path):
@@ -393,6 +411,24 @@ def test_candidate_cv_holds_out_each_non_test_part_per_candidate_as_part_cv_does
     for part in non_test:
         alone = statistics.mean([pipe[("force_weight_0", part)], pipe[("force_weight_100", part)]])
         assert pipe[("ensemble", part)] >= alone - 1e-9 * max(1.0, abs(alone))
+
+
+@pytest.mark.slow
+def test_vae_augmentation_retrains_a_run_of_two_candidates_from_its_kept_one(tiny_data, tmp_path):
+    """On a run that chose between two force weights, `none` trains stage 1 and 2 again as the kept candidate
+    was trained (its weight, seed and initial weights): the run's own PIPE on the test part, to the digit; an
+    augmentation trains another encoder."""
+    from pipe.pipeline import run_domain
+
+    run = run_domain(smoke_config(tiny_data, tmp_path / "run", "mlflow.enabled=false",
+                                  "stages.vae.force_weight=[0,100]"))
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("vae_augmentation.py", str(rows_file), str(run.run_dir), "--variants", "none,rotate")
+    rows = {row["variant"]: row for row in map(json.loads, rows_file.read_text().splitlines())}
+    assert sorted(rows) == ["augment:none", "augment:rotate"]
+    assert {row["run"] for row in rows.values()} == {str(run.run_dir)}
+    assert rows["augment:none"]["test"]["pipe"] == pytest.approx(run.pipe.domain["fit_F"], abs=1e-6)
+    assert rows["augment:rotate"]["test"]["pipe"] != pytest.approx(run.pipe.domain["fit_F"], abs=1e-6)
 
 
 def test_candidate_cv_table_averages_the_held_out_parts_per_seed_and_reads_the_kept_candidates_baselines(tmp_path):
