@@ -10,8 +10,9 @@ on the candidate's codes (without validation parts: gpr's kernel by its marginal
 what the head reads), gpr with its input and length scale chosen on the held-out part itself
 (`gpr_hindsight`, an optimistic bound: the best gpr of its grid), and, once both candidates are through, the
 mean of the two candidates' PIPE forces (`ensemble`). The test parts are never used. Caveat: the
-force-weighted candidate's stage 1 saw the recordings of the training parts it holds out (stage 1 is not
-trained again per fold). The rule, set before the results: the ensemble replaces the kept candidate if it
+force-weighted candidate's stage 1 saw the recordings of the training parts it holds out, unless `--stage1`
+trains it again per fold on the fold's training parts (`part_cv.fold_encoder`). The rule, set before the
+results: the ensemble replaces the kept candidate if it
 ties or beats it on every paper domain by the spread rule and beats it on at least one. One JSON line per
 run, candidate (or `ensemble`) and held-out part. Results: docs/experiments.md.
 Usage (one thread, as the results were measured):
@@ -33,7 +34,7 @@ import numpy as np
 from candidate_ensemble import fit
 from common import append_row, kept_folder, two_candidates
 from omegaconf import OmegaConf
-from part_cv import fold_models
+from part_cv import fold_models, reads_recordings
 from profile_pretraining import FITS
 from summarise import domain_of
 
@@ -44,13 +45,14 @@ from pipe.training.force_choice import CANDIDATE_PREFIX
 METHODS = ["pipe", "nearest", "gpr"]
 
 
-def cross_validate(run: Path, out: str, fits: str) -> None:
-    """Rows for every candidate and held-out part, then the ensemble's."""
+def cross_validate(run: Path, out: str, fits: str, stage1: bool = False) -> None:
+    """Rows for every candidate and held-out part, then the ensemble's; with `stage1`, the force-weighted
+    candidate's stage 1 trained again per fold."""
     chosen = kept_folder(run).name
     forces: dict[str, dict[str, list[np.ndarray]]] = defaultdict(dict)
     parts, dt = {}, None
     for candidate in two_candidates(run):
-        for fold in fold_models(candidate, [("default", {})], fits):
+        for fold in fold_models(candidate, [("default", {})], fits, stage1):
             cfg, held_out = fold.cfg, fold.held_out
             dt = 1.0 / cfg.data.rate_hz
             settings = OmegaConf.to_container(cfg.evaluation, resolve=True)
@@ -63,6 +65,7 @@ def cross_validate(run: Path, out: str, fits: str) -> None:
             parts[held_out.name] = held_out
             append_row(out, {"run": str(run), "candidate": candidate.name, "chosen": candidate.name == chosen,
                              "held_out": held_out.name, "seconds": fold.seconds,
+                             "stage1_per_fold": stage1 and reads_recordings(cfg),
                              **{name: results[name].domain["fit_F"] for name in METHODS},
                              "gpr_hindsight": hindsight})
     first, second = forces.values()
@@ -126,13 +129,15 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--fits", default=FITS, help="folder for gpr's identified profiles (relative: to the project "
                     "root)")
+    ap.add_argument("--stage1", action="store_true", help="train the force-weighted candidate's stage 1 again in "
+                    "each fold")
     args = ap.parse_args()
     if args.table:
         rows = [json.loads(line) for line in Path(args.out).read_text().splitlines()]
         print(table(rows), paired_table(rows), sep="\n\n")
         return
     for run in args.runs:
-        cross_validate(Path(run), args.out, args.fits)
+        cross_validate(Path(run), args.out, args.fits, args.stage1)
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
+import lightning as L
 import torch
 from common import append_row, kept_folder, load_encoder, load_run, pipe_fit
 from omegaconf import DictConfig
@@ -94,14 +95,33 @@ class Fold(NamedTuple):
     seconds: float
 
 
-def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str) -> Iterator[Fold]:
+def reads_recordings(cfg: DictConfig) -> bool:
+    """Whether the run's stage 1 learnt from its training parts' recordings (a force term), not from clouds
+    alone."""
+    return float(cfg.stages.vae.get("force_weight", 0.0)) > 0
+
+
+def fold_encoder(cfg: DictConfig, encoder: torch.nn.Module, initial: dict[str, torch.Tensor],
+                 train: list[PartData]) -> None:
+    """Stage 1 trained again into `encoder`, from the run's `initial` weights and seed, on a fold's training
+    parts alone (no validation parts: the checkpoint of the lowest training loss is kept)."""
+    encoder.load_state_dict(initial)
+    L.seed_everything(cfg.seed, workers=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        fit_module.fit_vae(cfg, encoder, train, [], Path(tmp), False, [])
+
+
+def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str, stage1: bool = False) -> Iterator[Fold]:
     """For each non-test part of a finished run held out in turn, and each variant: the head trained again
     from the run's initial weights on the run's stage-1 encoder (its kept candidate's, where it trained two),
-    on the other non-test parts."""
+    on the other non-test parts. With `stage1`, where the run's stage 1 read recordings (a force weight above
+    0, so it learnt from the held-out part's force), stage 1 is trained again per fold too (`fold_encoder`)."""
     run_dir = kept_folder(run_dir)
     cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+    initial_encoder = copy.deepcopy(encoder.state_dict())
     load_encoder(encoder, run_dir)
     own_encoder = copy.deepcopy(encoder.state_dict())
+    retrain = stage1 and reads_recordings(cfg)
     heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
     pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
     index = {p.name: i for i, p in enumerate(pool + test)}
@@ -114,6 +134,10 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str) -> I
         kept = [i for i, p in enumerate(pool) if p is not held_out]
         train = [pool[i] for i in kept]
         fold = replace(data, splits={"train": train, "val": [], "test": [held_out]})
+        if retrain:
+            fold_encoder(cfg, encoder, initial_encoder, train)
+            own_encoder = copy.deepcopy(encoder.state_dict())
+            latents, logvars = unscaled.latent_distribution(clouds)
         scales = data_scales(train)
         spread = latents[[index[p.name] for p in train]].std(0)
         steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
@@ -155,6 +179,8 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--fits", default=FITS, help="folder for the identified profiles of pretrain=S (relative: to "
                     "the project root)")
+    ap.add_argument("--stage1", action="store_true", help="train stage 1 again in each fold where it read "
+                    "recordings (a force weight above 0)")
     args = ap.parse_args()
     if args.table:
         print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
@@ -167,10 +193,10 @@ def main() -> None:
         if variant.get("sections", 0) < 0:
             raise SystemExit(f"unsupported variant {spec!r}: the cross-section's weight is at least 0")
     for run in args.runs:
-        for fold in fold_models(Path(run), variants, args.fits):
+        for fold in fold_models(Path(run), variants, args.fits, args.stage1):
             fit = pipe_fit(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test")
             row = {"run": str(Path(run)), "variant": fold.variant, "held_out": fold.held_out.name,
-                   "seconds": fold.seconds, "fit": fit}
+                   "seconds": fold.seconds, "fit": fit, "stage1_per_fold": args.stage1 and reads_recordings(fold.cfg)}
             append_row(args.out, row)
 
 

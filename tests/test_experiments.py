@@ -431,6 +431,45 @@ def test_vae_augmentation_retrains_a_run_of_two_candidates_from_its_kept_one(tin
     assert rows["augment:rotate"]["test"]["pipe"] != pytest.approx(run.pipe.domain["fit_F"], abs=1e-6)
 
 
+@pytest.mark.slow
+def test_stage1_per_fold_trains_the_force_weighted_encoder_without_the_held_out_part(tiny_data, tmp_path,
+                                                                                      monkeypatch):
+    """With `stage1`, the force-weighted candidate's stage 1 is trained again in each fold on the other non-test
+    parts alone (no validation parts), into other codes; the weight-0 candidate's stage 1 read no recordings and
+    is the run's own, so its folds are those without `stage1` to the digit."""
+    import torch
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import part_cv
+
+    from pipe.pipeline import run_domain
+
+    run = run_domain(smoke_config(tiny_data, tmp_path / "run", "mlflow.enabled=false",
+                                  "stages.vae.force_weight=[0,100]"))
+    fitted, fit_vae = [], part_cv.fit_module.fit_vae
+
+    def recording_fit_vae(cfg, encoder, train, val, *args):
+        fitted.append(([p.name for p in train], [p.name for p in val]))
+        return fit_vae(cfg, encoder, train, val, *args)
+
+    monkeypatch.setattr(part_cv.fit_module, "fit_vae", recording_fit_vae)
+    default = [("default", {})]
+    weighted = {f.held_out.name: f.codes.clone() for f in part_cv.fold_models(
+        run.run_dir / "force_weight_100", default, str(tmp_path / "fits"), stage1=True)}
+    assert sorted((sorted(train), val) for train, val in fitted) == sorted(
+        (sorted({"dsub9", "dsub15", "vga"} - {held}), []) for held in weighted)
+    assert all(held not in train for held, (train, _) in zip(weighted, fitted))
+    own = {f.held_out.name: f.codes.clone() for f in part_cv.fold_models(
+        run.run_dir / "force_weight_100", default, str(tmp_path / "fits"))}
+    assert all(not torch.allclose(weighted[part], own[part]) for part in own)
+    fitted.clear()
+    plain = [(f.held_out.name, f.codes.clone()) for f in part_cv.fold_models(
+        run.run_dir / "force_weight_0", default, str(tmp_path / "fits"), stage1=True)]
+    again = [(f.held_out.name, f.codes.clone()) for f in part_cv.fold_models(
+        run.run_dir / "force_weight_0", default, str(tmp_path / "fits"))]
+    assert not fitted and [name for name, _ in plain] == [name for name, _ in again]
+    assert all(torch.equal(a, b) for (_, a), (_, b) in zip(plain, again))
+
+
 def test_candidate_cv_table_averages_the_held_out_parts_per_seed_and_reads_the_kept_candidates_baselines(tmp_path):
     def row(run, candidate, part, pipe, chosen=False, nearest=0.0, gpr=0.0):
         return {"run": run, "candidate": candidate, "held_out": part, "pipe": pipe, "chosen": chosen,
