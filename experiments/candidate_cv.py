@@ -12,11 +12,11 @@ what the head reads), gpr with its input and length scale chosen on the held-out
 mean of the two candidates' PIPE forces (`ensemble`). The test parts are never used. Caveat: the
 force-weighted candidate's stage 1 saw the recordings of the training parts it holds out, unless `--stage1`
 trains it again per fold on the fold's training parts (`part_cv.fold_encoder`). The rule, set before the
-results: the ensemble replaces the kept candidate if it
-ties or beats it on every paper domain by the spread rule and beats it on at least one. One JSON line per
-run, candidate (or `ensemble`) and held-out part. Results: docs/experiments.md.
+results: the ensemble replaces the kept candidate if it ties or beats it on every paper domain by the spread
+rule and beats it on at least one. One JSON line per run, candidate (or `ensemble`) and held-out part.
+Results: docs/experiments.md.
 Usage (one thread, as the results were measured):
-  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/candidate_cv.py OUT.jsonl runs/pins/seed_{0,1,2}
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/candidate_cv.py OUT.jsonl runs/pins/seed_{0,1,2} [--stage1]
   python experiments/candidate_cv.py OUT.jsonl --table
 """
 from __future__ import annotations

@@ -7,7 +7,9 @@ the run's stage-1 encoder) on the other non-test parts, with no validation parts
 lowest training loss is kept, the same rule for every variant), and PIPE's FIT(F) is taken on the held-out
 part. The test parts are never used. A variant's score per seed is the mean over the held-out parts; the table
 gives its mean and standard deviation over the seeds. Variants as in `stage2_variants.py` (e.g. loss=mse);
-`default` is the run's own configuration.
+`default` is the run's own configuration. A run whose stage 1 read recordings (a force weight above 0) learnt
+from the held-out part's force there; `--stage1` trains its stage 1 again in each fold on the fold's training
+parts alone (`fold_encoder`), so that nothing of the held-out part's recordings reaches its code.
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/part_cv.py OUT.jsonl runs/pins/seed_{0,1,2} \
       --variants default,loss=mse

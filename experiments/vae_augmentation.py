@@ -4,8 +4,7 @@ For each run folder (a seed of `train.py`, e.g. runs/conn/seed_0 from `dvc repro
 it trained two force weights, `common.kept_folder`) the VAE is trained again from the run's own initial weights
 and seed at the run's settings, each training cloud changed at every step by the variant, then the run's
 stage 2, and PIPE and `nearest` are scored (FIT(F)) on the validation parts, which choose, and the test parts,
-which report. Validation clouds and the codes the head and the
-evaluation read are never augmented. Variants:
+which report. Validation clouds and the codes the head and the evaluation read are never augmented. Variants:
   none         no augmentation (the same retraining, so that rows differ by the augmentation alone)
   rotate       a random rotation about the insertion axis z (the clouds are centred), per cloud and step:
                the force does not depend on it, so the code should not either
