@@ -9,7 +9,9 @@ part. The test parts are never used. A variant's score per seed is the mean over
 gives its mean and standard deviation over the seeds. Variants as in `stage2_variants.py` (e.g. loss=mse);
 `default` is the run's own configuration. A run whose stage 1 read recordings (a force weight above 0) learnt
 from the held-out part's force there; `--stage1` trains its stage 1 again in each fold on the fold's training
-parts alone (`fold_encoder`), so that nothing of the held-out part's recordings reaches its code.
+parts alone (`fold_encoder`), so that nothing of the held-out part's recordings reaches its code; `--stage1
+all` does so for every run (for a run of weight 0, a control: only stage 1's training parts and checkpoint
+rule change).
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/part_cv.py OUT.jsonl runs/pins/seed_{0,1,2} \
       --variants default,loss=mse
@@ -97,10 +99,10 @@ class Fold(NamedTuple):
     seconds: float
 
 
-def reads_recordings(cfg: DictConfig) -> bool:
-    """Whether the run's stage 1 learnt from its training parts' recordings (a force term), not from clouds
-    alone."""
-    return float(cfg.stages.vae.get("force_weight", 0.0)) > 0
+def retrains_stage1(cfg: DictConfig, stage1: str | None) -> bool:
+    """Whether a fold trains the run's stage 1 again: for stage1="all" always, for "force" where it learnt from
+    the training parts' recordings (a force weight above 0), for None never."""
+    return stage1 == "all" or (stage1 == "force" and float(cfg.stages.vae.get("force_weight", 0.0)) > 0)
 
 
 def fold_encoder(cfg: DictConfig, encoder: torch.nn.Module, initial: dict[str, torch.Tensor],
@@ -108,22 +110,25 @@ def fold_encoder(cfg: DictConfig, encoder: torch.nn.Module, initial: dict[str, t
     """Stage 1 trained again into `encoder`, from the run's `initial` weights and seed, on a fold's training
     parts alone (no validation parts: the checkpoint of the lowest training loss is kept)."""
     encoder.load_state_dict(initial)
+    encoder.requires_grad_(True)        # an earlier fold's stage 2 froze it
     L.seed_everything(cfg.seed, workers=True)
     with tempfile.TemporaryDirectory() as tmp:
         fit_module.fit_vae(cfg, encoder, train, [], Path(tmp), False, [])
 
 
-def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str, stage1: bool = False) -> Iterator[Fold]:
+def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
+                stage1: str | None = None) -> Iterator[Fold]:
     """For each non-test part of a finished run held out in turn, and each variant: the head trained again
     from the run's initial weights on the run's stage-1 encoder (its kept candidate's, where it trained two),
-    on the other non-test parts. With `stage1`, where the run's stage 1 read recordings (a force weight above
-    0, so it learnt from the held-out part's force), stage 1 is trained again per fold too (`fold_encoder`)."""
+    on the other non-test parts. Where `retrains_stage1(cfg, stage1)` (stage1="force": the run's stage 1 read
+    recordings, so it learnt from the held-out part's force), stage 1 is trained again per fold too
+    (`fold_encoder`)."""
     run_dir = kept_folder(run_dir)
     cfg, data, (encoder, head, dynamics) = load_run(run_dir)
     initial_encoder = copy.deepcopy(encoder.state_dict())
     load_encoder(encoder, run_dir)
     own_encoder = copy.deepcopy(encoder.state_dict())
-    retrain = stage1 and reads_recordings(cfg)
+    retrain = retrains_stage1(cfg, stage1)
     heads = {spec: variant_head(cfg, variant, head) for spec, variant in variants}
     pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
     index = {p.name: i for i, p in enumerate(pool + test)}
@@ -181,8 +186,9 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--fits", default=FITS, help="folder for the identified profiles of pretrain=S (relative: to "
                     "the project root)")
-    ap.add_argument("--stage1", action="store_true", help="train stage 1 again in each fold where it read "
-                    "recordings (a force weight above 0)")
+    ap.add_argument("--stage1", nargs="?", const="force", choices=("force", "all"),
+                    help="train stage 1 again in each fold: where it read recordings (a force weight above 0; "
+                    "the default of --stage1), or in every run (all)")
     args = ap.parse_args()
     if args.table:
         print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
@@ -198,7 +204,7 @@ def main() -> None:
         for fold in fold_models(Path(run), variants, args.fits, args.stage1):
             fit = pipe_fit(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test")
             row = {"run": str(Path(run)), "variant": fold.variant, "held_out": fold.held_out.name,
-                   "seconds": fold.seconds, "fit": fit, "stage1_per_fold": args.stage1 and reads_recordings(fold.cfg)}
+                   "seconds": fold.seconds, "fit": fit, "stage1_per_fold": retrains_stage1(fold.cfg, args.stage1)}
             append_row(args.out, row)
 
 

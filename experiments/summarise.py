@@ -14,6 +14,8 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+from pipe.training.force_choice import CANDIDATE_PREFIX
+
 
 def spread(values: list[float]) -> str:
     return f"{statistics.mean(values):.2f} ± {statistics.stdev(values) if len(values) > 1 else 0.0:.2f}"
@@ -21,8 +23,11 @@ def spread(values: list[float]) -> str:
 
 def domain_of(run: str) -> str:
     """A run folder's domain: runs/conn/seed_0 -> conn; a learning curve's seed folders, such as
-    runs/curve/pins/train_20/seed_0 or runs/curve_defaults/rect/train_100/seed_0 -> pins/train_20, rect/train_100."""
+    runs/curve/pins/train_20/seed_0 or runs/curve_defaults/rect/train_100/seed_0 -> pins/train_20, rect/train_100;
+    a candidate's folder as its run's (runs/conn/seed_0/force_weight_0 -> conn)."""
     parts = Path(run).parts
+    if parts[-1].startswith(CANDIDATE_PREFIX):
+        parts = parts[:-1]
     return "/".join(parts[-3:-1]) if parts[-2].startswith("train_") else parts[-2]
 
 

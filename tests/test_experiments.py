@@ -437,6 +437,8 @@ def test_stage1_per_fold_trains_the_force_weighted_encoder_without_the_held_out_
     """With `stage1`, the force-weighted candidate's stage 1 is trained again in each fold on the other non-test
     parts alone (no validation parts), into other codes; the weight-0 candidate's stage 1 read no recordings and
     is the run's own, so its folds are those without `stage1` to the digit."""
+    import copy
+
     import torch
     sys.path.insert(0, str(ROOT / "experiments"))
     import part_cv
@@ -449,12 +451,18 @@ def test_stage1_per_fold_trains_the_force_weighted_encoder_without_the_held_out_
 
     def recording_fit_vae(cfg, encoder, train, val, *args):
         fitted.append(([p.name for p in train], [p.name for p in val]))
-        return fit_vae(cfg, encoder, train, val, *args)
+        before = copy.deepcopy(encoder.state_dict())
+        result = fit_vae(cfg, encoder, train, val, *args)
+        # every fold trains the encoder itself, not only the force readout (an earlier fold's stage 2 froze it)
+        changed = [not torch.equal(before[name], value) for name, value in encoder.state_dict().items()
+                   if value.is_floating_point()]
+        assert sum(changed) > len(changed) / 2
+        return result
 
     monkeypatch.setattr(part_cv.fit_module, "fit_vae", recording_fit_vae)
     default = [("default", {})]
     weighted = {f.held_out.name: f.codes.clone() for f in part_cv.fold_models(
-        run.run_dir / "force_weight_100", default, str(tmp_path / "fits"), stage1=True)}
+        run.run_dir / "force_weight_100", default, str(tmp_path / "fits"), stage1="force")}
     assert sorted((sorted(train), val) for train, val in fitted) == sorted(
         (sorted({"dsub9", "dsub15", "vga"} - {held}), []) for held in weighted)
     assert all(held not in train for held, (train, _) in zip(weighted, fitted))
@@ -463,11 +471,25 @@ def test_stage1_per_fold_trains_the_force_weighted_encoder_without_the_held_out_
     assert all(not torch.allclose(weighted[part], own[part]) for part in own)
     fitted.clear()
     plain = [(f.held_out.name, f.codes.clone()) for f in part_cv.fold_models(
-        run.run_dir / "force_weight_0", default, str(tmp_path / "fits"), stage1=True)]
+        run.run_dir / "force_weight_0", default, str(tmp_path / "fits"), stage1="force")]
     again = [(f.held_out.name, f.codes.clone()) for f in part_cv.fold_models(
         run.run_dir / "force_weight_0", default, str(tmp_path / "fits"))]
     assert not fitted and [name for name, _ in plain] == [name for name, _ in again]
     assert all(torch.equal(a, b) for (_, a), (_, b) in zip(plain, again))
+    # stage1="all", the control: the weight-0 candidate's stage 1 trained again per fold as well
+    control = {f.held_out.name: f.codes.clone() for f in part_cv.fold_models(
+        run.run_dir / "force_weight_0", default, str(tmp_path / "fits"), stage1="all")}
+    assert sorted(sorted(train) for train, _ in fitted) == sorted(
+        sorted({"dsub9", "dsub15", "vga"} - {held}) for held in control)
+    assert all(not torch.allclose(control[name], codes) for name, codes in again)
+
+
+def test_domain_of_reads_a_candidates_folder_as_its_runs():
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from summarise import domain_of
+
+    assert domain_of("runs/conn/seed_0") == domain_of("runs/conn/seed_0/force_weight_1000") == "conn"
+    assert domain_of("runs/curve/pins/train_20/seed_1/force_weight_0") == "pins/train_20"
 
 
 def test_candidate_cv_table_averages_the_held_out_parts_per_seed_and_reads_the_kept_candidates_baselines(tmp_path):
