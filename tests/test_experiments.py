@@ -434,9 +434,10 @@ def test_vae_augmentation_retrains_a_run_of_two_candidates_from_its_kept_one(tin
 @pytest.mark.slow
 def test_stage1_per_fold_trains_the_force_weighted_encoder_without_the_held_out_part(tiny_data, tmp_path,
                                                                                       monkeypatch):
-    """With `stage1`, the force-weighted candidate's stage 1 is trained again in each fold on the other non-test
-    parts alone (no validation parts), into other codes; the weight-0 candidate's stage 1 read no recordings and
-    is the run's own, so its folds are those without `stage1` to the digit."""
+    """With stage1="force", the force-weighted candidate's stage 1 is trained again in each fold (the encoder
+    itself) on the other non-test parts alone (no validation parts), into other codes; the weight-0 candidate's
+    stage 1 read no recordings and is the run's own, so its folds are those without `stage1` to the digit, unless
+    stage1="all" (the control)."""
     import copy
 
     import torch
