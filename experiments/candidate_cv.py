@@ -34,7 +34,7 @@ import numpy as np
 from candidate_ensemble import fit
 from common import append_row, kept_folder, two_candidates
 from omegaconf import OmegaConf
-from part_cv import fold_models, retrains_stage1
+from part_cv import fold_models
 from profile_pretraining import FITS
 from summarise import domain_of
 
@@ -65,7 +65,7 @@ def cross_validate(run: Path, out: str, fits: str, stage1: bool = False) -> None
             parts[held_out.name] = held_out
             append_row(out, {"run": str(run), "candidate": candidate.name, "chosen": candidate.name == chosen,
                              "held_out": held_out.name, "seconds": fold.seconds,
-                             "stage1_per_fold": retrains_stage1(cfg, "force" if stage1 else None),
+                             "stage1_per_fold": fold.stage1_per_fold,
                              **{name: results[name].domain["fit_F"] for name in METHODS},
                              "gpr_hindsight": hindsight})
     first, second = forces.values()

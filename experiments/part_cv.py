@@ -47,6 +47,7 @@ from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SectionCode
 from pipe.pipeline import build_model
 from pipe.training import fit as fit_module
+from pipe.training.force_choice import force_weights
 
 
 def table(rows: list[dict]) -> str:
@@ -87,7 +88,7 @@ def section_weights(width: int, size: int, factor: float) -> torch.Tensor:
 class Fold(NamedTuple):
     """One variant's head trained with one non-test part held out: the run's config, the fold's domain (that
     part its only test part, no validation parts), the model, the codes it reads by `index` (every non-test
-    and test part's), and the seconds stage 2 took."""
+    and test part's), the seconds stage 2 took, and whether the fold trained stage 1 again (`retrains_stage1`)."""
 
     cfg: DictConfig
     data: PreparedDomain
@@ -97,12 +98,13 @@ class Fold(NamedTuple):
     codes: torch.Tensor
     index: dict[str, int]
     seconds: float
+    stage1_per_fold: bool
 
 
 def retrains_stage1(cfg: DictConfig, stage1: str | None) -> bool:
     """Whether a fold trains the run's stage 1 again: for stage1="all" always, for "force" where it learnt from
     the training parts' recordings (a force weight above 0), for None never."""
-    return stage1 == "all" or (stage1 == "force" and float(cfg.stages.vae.get("force_weight", 0.0)) > 0)
+    return stage1 == "all" or (stage1 == "force" and any(weight > 0 for weight in force_weights(cfg)))
 
 
 def fold_encoder(cfg: DictConfig, encoder: torch.nn.Module, initial: dict[str, torch.Tensor],
@@ -175,7 +177,7 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 codes = model.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else read
             if "clip" in variant:
                 codes = clipped(codes, [index[p.name] for p in train], float(variant["clip"]))
-            yield Fold(cfg, fold, held_out, spec, model, codes, index, time.perf_counter() - start)
+            yield Fold(cfg, fold, held_out, spec, model, codes, index, time.perf_counter() - start, retrain)
 
 
 def main() -> None:
@@ -204,7 +206,7 @@ def main() -> None:
         for fold in fold_models(Path(run), variants, args.fits, args.stage1):
             fit = pipe_fit(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test")
             row = {"run": str(Path(run)), "variant": fold.variant, "held_out": fold.held_out.name,
-                   "seconds": fold.seconds, "fit": fit, "stage1_per_fold": retrains_stage1(fold.cfg, args.stage1)}
+                   "seconds": fold.seconds, "fit": fit, "stage1_per_fold": fold.stage1_per_fold}
             append_row(args.out, row)
 
 

@@ -158,14 +158,14 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
             return super().configure_optimizers()
 
         def configure_callbacks(self):
-            if "ema" in variant:
-                return [KeptAverage(decay=1.0 - 1.0 / (variant["ema"] * steps_per_epoch))]
-            return []
+            if "ema" not in variant:
+                return []
+            self.averaging = KeptAverage(decay=1.0 - 1.0 / (variant["ema"] * steps_per_epoch))
+            return [self.averaging]
 
         def on_save_checkpoint(self, checkpoint):
-            averaging = next((c for c in self.trainer.callbacks if isinstance(c, KeptAverage)), None)
-            if averaging is not None and "current_model_state" not in checkpoint:   # weights-only: the average
-                checkpoint["state_dict"] = averaging.average_state()                 #   is not in it yet
+            if "ema" in variant and "current_model_state" not in checkpoint:   # weights-only: the average is not
+                checkpoint["state_dict"] = self.averaging.average_state()       #   in it yet
 
     return Stage
 
