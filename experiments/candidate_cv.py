@@ -17,7 +17,7 @@ rule and beats it on at least one. One JSON line per run, candidate (or `ensembl
 Results: docs/experiments.md.
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/candidate_cv.py OUT.jsonl runs/pins/seed_{0,1,2} [--stage1]
-  python experiments/candidate_cv.py OUT.jsonl --table
+  python experiments/candidate_cv.py OUT.jsonl --table [--test docs/experiments/candidate_ensemble.jsonl]
 """
 from __future__ import annotations
 
@@ -40,6 +40,7 @@ from summarise import domain_of
 
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
+from pipe.evaluation.spread import spread, verdict
 from pipe.training.force_choice import CANDIDATE_PREFIX
 
 METHODS = ["pipe", "nearest", "gpr"]
@@ -102,6 +103,35 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def higher_and_kept(rows: list[dict], run: str) -> tuple[str, str]:
+    """A run's candidate of the higher mean PIPE FIT(F) over the held-out parts, and the one it kept on its
+    validation parts."""
+    own = [r for r in rows if r["run"] == run and r["candidate"] != "ensemble"]
+    pipe = {c: statistics.fmean(r["pipe"] for r in own if r["candidate"] == c)
+            for c in dict.fromkeys(r["candidate"] for r in own)}
+    return max(pipe, key=pipe.get), next(r["candidate"] for r in own if r["chosen"])
+
+
+def on_test_parts(rows: list[dict], test_rows: list[dict]) -> str:
+    """Per domain, on the test parts (`test_rows`: candidate_ensemble.py's rows of the same runs): PIPE's FIT(F)
+    with the candidate each run kept on its validation parts against the one higher in this cross-validation,
+    mean ± std over the seeds, the verdict of the second against the first by the spread rule, and in how many
+    runs the two choices differ."""
+    test = {r["run"]: r["test"] for r in test_rows}
+    lines = ["| domain | kept on the validation parts | higher in the cross-validation | verdict | runs that differ |",
+             "| --- | --- | --- | --- | --- |"]
+    for domain in dict.fromkeys(domain_of(r["run"]) for r in rows):
+        runs = [run for run in dict.fromkeys(r["run"] for r in rows) if domain_of(run) == domain]
+        if missing := [run for run in runs if run not in test]:
+            raise SystemExit(f"--test: no test row for {', '.join(missing)}")
+        choices = [higher_and_kept(rows, run) for run in runs]
+        kept = spread([test[run][k] for run, (_, k) in zip(runs, choices)])
+        higher = spread([test[run][h] for run, (h, _) in zip(runs, choices)])
+        lines.append(f"| {domain} | {kept} | {higher} | {verdict(higher, kept, 'fit_F')} | "
+                     f"{sum(h != k for h, k in choices)} of {len(runs)} |")
+    return "\n".join(lines)
+
+
 def paired_table(rows: list[dict]) -> str:
     """Per domain and seed, on the same held-out parts: PIPE's mean FIT(F) minus `nearest`'s and minus gpr's,
     on each candidate's own codes, and the candidate of the higher cross-validated PIPE beside the one the run
@@ -110,11 +140,8 @@ def paired_table(rows: list[dict]) -> str:
              "| --- | --- | --- | --- | --- | --- | --- |"]
     for run in dict.fromkeys(r["run"] for r in rows):
         own = [r for r in rows if r["run"] == run and r["candidate"] != "ensemble"]
-        pipe = {c: statistics.fmean(r["pipe"] for r in own if r["candidate"] == c)
-                for c in dict.fromkeys(r["candidate"] for r in own)}
-        higher = max(pipe, key=pipe.get)
-        kept = next(r["candidate"] for r in own if r["chosen"])
-        for candidate in pipe:
+        higher, kept = higher_and_kept(rows, run)
+        for candidate in dict.fromkeys(r["candidate"] for r in own):
             mine = [r for r in own if r["candidate"] == candidate]
             less = {m: statistics.fmean(r["pipe"] - r[m] for r in mine) for m in ("nearest", "gpr")}
             lines.append(f"| {domain_of(run)} | {Path(run).name} | {candidate} | {less['nearest']:+.2f} | "
@@ -127,6 +154,8 @@ def main() -> None:
     ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
     ap.add_argument("runs", nargs="*", help="finished seed folders of train.py with two force-weight candidates")
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap.add_argument("--test", metavar="ROWS", help="with --table: candidate_ensemble.py's rows of the same runs; "
+                    "adds the test parts' FIT(F) of the candidate the cross-validation prefers")
     ap.add_argument("--fits", default=FITS, help="folder for gpr's identified profiles (relative: to the project "
                     "root)")
     ap.add_argument("--stage1", action="store_true", help="train the force-weighted candidate's stage 1 again in "
@@ -135,6 +164,9 @@ def main() -> None:
     if args.table:
         rows = [json.loads(line) for line in Path(args.out).read_text().splitlines()]
         print(table(rows), paired_table(rows), sep="\n\n")
+        if args.test:
+            test_rows = [json.loads(line) for line in Path(args.test).read_text().splitlines()]
+            print("", on_test_parts(rows, test_rows), sep="\n")
         return
     for run in args.runs:
         cross_validate(Path(run), args.out, args.fits, args.stage1)

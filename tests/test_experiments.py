@@ -524,6 +524,26 @@ def test_candidate_cv_table_averages_the_held_out_parts_per_seed_and_reads_the_k
     assert "| pins | seed_1 | force_weight_1000 | +10.00 | -30.00 | force_weight_0 | force_weight_1000 |" in printed
 
 
+def test_candidate_cv_test_table_scores_on_the_test_parts_the_candidate_the_cross_validation_prefers(tmp_path):
+    def row(run, candidate, pipe, chosen=False):
+        return {"run": run, "candidate": candidate, "held_out": "a", "pipe": pipe, "chosen": chosen,
+                "nearest": 0.0, "gpr": 0.0, "gpr_hindsight": 0.0}
+    # cross-validation: seed 0 kept weight 0 and prefers 1000; seeds 1 and 2 kept and prefer 1000
+    rows = [row("runs/pins/seed_0", "force_weight_0", 50.0, True), row("runs/pins/seed_0", "force_weight_1000", 60.0),
+            row("runs/pins/seed_1", "force_weight_0", 50.0), row("runs/pins/seed_1", "force_weight_1000", 60.0, True),
+            row("runs/pins/seed_2", "force_weight_0", 50.0), row("runs/pins/seed_2", "force_weight_1000", 60.0, True)]
+    test = [{"run": f"runs/pins/seed_{s}", "test": {"force_weight_0": w0, "force_weight_1000": w1000}}
+            for s, w0, w1000 in ((0, 70.0, 80.0), (1, 0.0, 72.0), (2, 0.0, 74.0))]
+    test_file = tmp_path / "test.jsonl"
+    test_file.write_text("".join(json.dumps(r) + "\n" for r in test))
+    printed = printed_table("candidate_cv.py", rows, tmp_path, "--table", "--test", str(test_file))
+    # kept: 70, 72, 74 (mean 72, std 2); preferred: 80, 72, 74 (mean 75.33); 3.33 <= 2 + 4.16: a tie
+    assert (f"| pins | 72.00 ± 2.00 | 75.33 ± {statistics.stdev([80, 72, 74]):.2f} | tie | 1 of 3 |") in printed
+    test_file.write_text(json.dumps(test[0]) + "\n")
+    with pytest.raises(AssertionError, match="no test row for runs/pins/seed_1, runs/pins/seed_2"):
+        printed_table("candidate_cv.py", rows, tmp_path, "--table", "--test", str(test_file))
+
+
 @pytest.mark.slow
 def test_head_ensemble_cv_first_member_is_part_cvs_head_and_the_mean_force_fits_at_least_the_members_mean(
         trained_run, tmp_path):
