@@ -103,10 +103,14 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def higher_and_kept(rows: list[dict], run: str) -> tuple[str, str]:
-    """A run's candidate of the higher mean PIPE FIT(F) over the held-out parts, and the one it kept on its
-    validation parts."""
-    own = [r for r in rows if r["run"] == run and r["candidate"] != "ensemble"]
+def candidate_rows(rows: list[dict], run: str) -> list[dict]:
+    """A run's rows of its two candidates (not of their mean)."""
+    return [r for r in rows if r["run"] == run and r["candidate"] != "ensemble"]
+
+
+def higher_and_kept(own: list[dict]) -> tuple[str, str]:
+    """Of a run's `candidate_rows`: the candidate of the higher mean PIPE FIT(F) over the held-out parts, and
+    the one the run kept on its validation parts."""
     pipe = {c: statistics.fmean(r["pipe"] for r in own if r["candidate"] == c)
             for c in dict.fromkeys(r["candidate"] for r in own)}
     return max(pipe, key=pipe.get), next(r["candidate"] for r in own if r["chosen"])
@@ -124,7 +128,7 @@ def on_test_parts(rows: list[dict], test_rows: list[dict]) -> str:
         runs = [run for run in dict.fromkeys(r["run"] for r in rows) if domain_of(run) == domain]
         if missing := [run for run in runs if run not in test]:
             raise SystemExit(f"--test: no test row for {', '.join(missing)}")
-        choices = [higher_and_kept(rows, run) for run in runs]
+        choices = [higher_and_kept(candidate_rows(rows, run)) for run in runs]
         kept = spread([test[run][k] for run, (_, k) in zip(runs, choices)])
         higher = spread([test[run][h] for run, (h, _) in zip(runs, choices)])
         lines.append(f"| {domain} | {kept} | {higher} | {verdict(higher, kept, 'fit_F')} | "
@@ -139,8 +143,8 @@ def paired_table(rows: list[dict]) -> str:
     lines = ["| domain | seed | candidate | PIPE − nearest | PIPE − gpr | higher in the cross-validation | kept |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
     for run in dict.fromkeys(r["run"] for r in rows):
-        own = [r for r in rows if r["run"] == run and r["candidate"] != "ensemble"]
-        higher, kept = higher_and_kept(rows, run)
+        own = candidate_rows(rows, run)
+        higher, kept = higher_and_kept(own)
         for candidate in dict.fromkeys(r["candidate"] for r in own):
             mine = [r for r in own if r["candidate"] == candidate]
             less = {m: statistics.fmean(r["pipe"] - r[m] for r in mine) for m in ("nearest", "gpr")}
