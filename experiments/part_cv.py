@@ -112,7 +112,6 @@ def fold_encoder(cfg: DictConfig, encoder: torch.nn.Module, initial: dict[str, t
     """Stage 1 trained again into `encoder`, from the run's `initial` weights and seed, on a fold's training
     parts alone (no validation parts: the checkpoint of the lowest training loss is kept)."""
     encoder.load_state_dict(initial)
-    encoder.requires_grad_(True)        # an earlier fold's stage 2 froze it
     L.seed_everything(cfg.seed, workers=True)
     with tempfile.TemporaryDirectory() as tmp:
         fit_module.fit_vae(cfg, encoder, train, [], Path(tmp), False, [])

@@ -198,6 +198,21 @@ def test_bfloat16_features_only_while_training():
     assert torch.allclose(mu_bf16, mu_fp32, atol=0.05 * mu_fp32.abs().max().item())
 
 
+@pytest.mark.filterwarnings("ignore:You are trying to `self.log")   # the stage outside a Trainer
+def test_stage_one_trains_an_encoder_that_a_stage_two_froze():
+    """Training stage 1 again on an encoder a HeadStage froze (as experiments/part_cv.py does per fold): every
+    weight of the encoder gets a gradient, none is left out silently."""
+    from pipe.plugins.encoder.pointnet import PointNetVAE
+    from pipe.training.stages import VAEStage
+
+    torch.manual_seed(0)
+    encoder = PointNetVAE(num_points=32, latent_dim=4)
+    encoder.requires_grad_(False)            # what HeadStage leaves behind
+    stage = VAEStage(encoder, lr=1e-3, kl_weight=1.0)
+    stage._step([torch.randn(3, 32, 3), torch.arange(3)], "train").backward()
+    assert all(p.requires_grad and p.grad is not None for p in encoder.parameters())
+
+
 def test_an_unknown_head_loss_is_refused_before_stage_one(tiny_data, tmp_path):
     result = run_train("experiment=smoke", "stages.head.loss=mae", f"data.dir={tiny_data}",
                        f"hydra.run.dir={tmp_path}", *TINY_DOMAIN)

@@ -40,6 +40,7 @@ class VAEStage(L.LightningModule):
     validation parts' standardised force signatures, `pipe.training.force_signature`): the code learns what
     the force depends on too. The validation loss that chooses the checkpoint stays Chamfer + KL; the term is
     logged beside it (`vae/<split>_force`, unweighted). Batches are (clouds, the clouds' rows in their split).
+    The encoder trains whole, even one a stage 2 froze (training stage 1 again, as a cross-validation does).
     """
 
     def __init__(self, encoder: PointCloudVAE, lr: float, kl_weight: float, feature_dtype: str = "float32",
@@ -50,6 +51,7 @@ class VAEStage(L.LightningModule):
                             f"{', '.join(FEATURE_DTYPES)}")
         self.encoder, self.lr, self.kl_weight, self.force_weight = encoder, lr, kl_weight, force_weight
         encoder.train_feature_dtype = FEATURE_DTYPES[feature_dtype]
+        encoder.requires_grad_(True)    # this stage trains it, also where a stage 2 (HeadStage) froze it before
         self.readout: torch.nn.Linear | None = None
         if signatures is not None:
             train, val = signatures
