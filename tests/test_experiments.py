@@ -652,3 +652,26 @@ def test_encoder_stage1_trains_another_encoder_on_exported_clouds_into_a_run_fol
     encoder, head, _ = build_components(cfg)
     load_encoder(encoder, out)
     assert encoder.latent_dim == 16 and head.latent_dim == 16 + SECTION_SIZE     # code.sections, as the run
+
+
+def test_contact_points_finds_the_points_on_a_plugs_contacts_alone():
+    """Hand-placed points: a D-sub pin's tip (its end face at z = 0.8) and the middle of a rect pad's outer face
+    (0.05 mm proud of the tongue, z 1.0 to mate - 0.5) lie on contacts; the D-sub shell's rim (mid-wall of its
+    straight top side, z = 0), the rect shell's outer wall, the tongue's front face and the tongue's face
+    beside a pad do not."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import numpy as np
+    from contact_points import on_contacts
+
+    from pipe.synthetic.catalogue import Plug, dsub_plug
+    from pipe.synthetic.meshes import SHELL_WALL
+
+    dsub = dsub_plug("dsub9", "E", False)
+    x, y = -2 * dsub.pitch, dsub.row_pitch / 2          # the first row's first pin (5 pins, 2 rows)
+    points = np.array([[x, y, 0.8], [0.0, dsub.height / 2 - SHELL_WALL / 2, 0.0]])
+    assert on_contacts(dsub, points).tolist() == [True, False]
+
+    rect = Plug("r", "rect", "rect", 4 * 2.5, 2.3 * 2.5, 6.0, (2,), 2.5, 2.5, 0.625, 0, 2.0, (12.0, 7.8, 10.0))
+    face = 0.3 * (rect.height / 2 - SHELL_WALL)          # the tongue's upper face: 0.3 of the shell's inside
+    points = np.array([[1.25, face + 0.05, 3.0], [0.0, face, 3.0], [0.0, 0.0, 0.6], [rect.width / 2, 0.0, 3.0]])
+    assert on_contacts(rect, points).tolist() == [True, False, False, False]
