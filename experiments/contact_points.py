@@ -29,7 +29,8 @@ END_ON_MM = 1.0           # "the points within the first millimetre" of the mati
 
 
 def on_contacts(plug: Plug, points: np.ndarray) -> np.ndarray:
-    """Which of `points` (n, 3), in the plug mesh's frame, lie on its contacts: off the contactless plug."""
+    """Which of `points` (n, 3) on the plug's surface (its cloud, in the mesh's frame) lie on its contacts: those
+    off the surface of the contactless plug (a point off the plug's surface altogether would count too)."""
     bare = part_mesh(replace(plug, rows=()))
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(bare.vertices, o3d.core.float32), o3d.core.Tensor(bare.faces, o3d.core.uint32))
@@ -48,16 +49,17 @@ def part_row(plug: Plug, points: int, seed: int = 0) -> dict:
 
 
 def summary(rows: list[dict]) -> str:
-    """Per family and cloud size: the points per contact (median, range) and the share of parts with any
-    contact point within END_ON_MM of the mating end."""
+    """Per family and cloud size: the points per contact in all and within END_ON_MM of the mating end (median,
+    range), and how many parts have no contact point there."""
     lines = []
     for key in sorted({(r["family"], r["points"]) for r in rows}):
         own = [r for r in rows if (r["family"], r["points"]) == key]
         per = [r["on_contacts"] / r["contacts"] for r in own]
-        seen = sum(r["on_contacts_end_on"] > 0 for r in own)
-        lines.append(f"{key[0]}, {key[1]} points: {statistics.median(per):.2f} points per contact "
-                     f"({min(per):.2f} to {max(per):.2f}) over {len(own)} parts; any within {END_ON_MM:g} mm of "
-                     f"the mating end in {seen} of them")
+        end_on = [r["on_contacts_end_on"] / r["contacts"] for r in own]
+        unseen = sum(r["on_contacts_end_on"] == 0 for r in own)
+        lines.append(f"{key[0]}, {key[1]} points, {len(own)} parts: {statistics.median(per):.2f} points per contact "
+                     f"({min(per):.2f} to {max(per):.2f}); within {END_ON_MM:g} mm of the mating end "
+                     f"{statistics.median(end_on):.2f} ({min(end_on):.2f} to {max(end_on):.2f}), none in {unseen}")
     return "\n".join(lines)
 
 

@@ -675,3 +675,17 @@ def test_contact_points_finds_the_points_on_a_plugs_contacts_alone():
     face = 0.3 * (rect.height / 2 - SHELL_WALL)          # the tongue's upper face: 0.3 of the shell's inside
     points = np.array([[1.25, face + 0.05, 3.0], [0.0, face, 3.0], [0.0, 0.0, 0.6], [rect.width / 2, 0.0, 3.0]])
     assert on_contacts(rect, points).tolist() == [True, False, False, False]
+
+
+def test_contact_points_summary_gives_points_per_contact_per_family_and_cloud_size():
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from contact_points import summary
+
+    rows = [{"family": "rect", "points": 1024, "contacts": 4, "on_contacts": 8, "on_contacts_end_on": 0},
+            {"family": "rect", "points": 1024, "contacts": 10, "on_contacts": 10, "on_contacts_end_on": 3},
+            {"family": "dsub", "points": 1024, "contacts": 9, "on_contacts": 27, "on_contacts_end_on": 9}]
+    assert summary(rows).splitlines() == [   # rect: medians of 2 and 1, of 0 and 0.3
+        "dsub, 1024 points, 1 parts: 3.00 points per contact (3.00 to 3.00); within 1 mm of the mating end 1.00 "
+        "(1.00 to 1.00), none in 0",
+        "rect, 1024 points, 2 parts: 1.50 points per contact (1.00 to 2.00); within 1 mm of the mating end 0.15 "
+        "(0.00 to 0.30), none in 1"]
