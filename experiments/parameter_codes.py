@@ -15,6 +15,10 @@ from the run's own initial weights, as `stage2_variants.py`'s `default`, once pe
             standardised over the training parts): a code made by hand that sees a lead-in and a taper
   codes+sections  both side by side in a head of twice the latent size (a fresh head of that width, seeded
             with the run's seed; code.sections builds one of the latent size plus the sections')
+  codes+slices  the run's own input (the encoder's code, and the cross-section where code.sections) followed
+            by slices through the part's mesh near its mating end (mesh_slices.py: the separate regions, their
+            outline's length and area 0.5 to 10 mm from the tip), standardised over the training parts, in a
+            fresh head of that width seeded with the run's seed; `nearest` reads the whole input
 Each is padded with zeros to the latent size, so the head is the run's own and `nearest` reads the training
 part nearest in that space. A head on `geometry` shows how far a perfect geometry encoder would take PIPE;
 `physics` minus `geometry` is what no geometry can give; `--without detents` leaves parameters out of both
@@ -37,6 +41,7 @@ from pathlib import Path
 
 import torch
 from common import kept_folder, load_encoder, load_run, pooled_features, score
+from mesh_slices import SLICE_SIZE, dataset_slices, standardised
 from omegaconf import DictConfig, OmegaConf
 
 from pipe.data.batches import stack_clouds
@@ -47,7 +52,7 @@ from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.families import family_parts
 from pipe.training.fit import fit_head
 
-KINDS = ("codes", "geometry", "physics", "features", "sections", "codes+sections")
+KINDS = ("codes", "geometry", "physics", "features", "sections", "codes+sections", "codes+slices")
 
 
 def shape_parameters(part: Plug | Pin) -> dict[str, float]:
@@ -154,9 +159,10 @@ def main() -> None:
         for kind in kinds:
             head.load_state_dict(initial)
             kind_head = head
-            if kind == "codes+sections":
+            if kind in ("codes+sections", "codes+slices"):
                 torch.manual_seed(cfg.seed)
-                kind_head = build_plugin("head", cfg.head, ParameterHead, latent_dim=2 * head.latent_dim,
+                width = 2 * head.latent_dim if kind == "codes+sections" else head.latent_dim + SLICE_SIZE
+                kind_head = build_plugin("head", cfg.head, ParameterHead, latent_dim=width,
                                          num_parameters=len(dynamics.parameter_names))
             model = build_model(cfg, data, (encoder, kind_head, dynamics))
             if kind == "codes":
@@ -164,6 +170,10 @@ def main() -> None:
             elif kind == "codes+sections":
                 latents = torch.cat([model.latent_distribution(clouds)[0],
                                      section_codes(clouds, len(train), head.latent_dim)], dim=1)
+            elif kind == "codes+slices":
+                slices = dataset_slices(data.dataset_dir, [p.name for p in ordered])
+                sliced = standardised(slices, list(range(len(train))))
+                latents = torch.cat([model.latent_distribution(clouds)[0], sliced], dim=1)
             elif kind == "sections":
                 latents = section_codes(clouds, len(train), head.latent_dim)
             elif kind == "features":
@@ -172,7 +182,7 @@ def main() -> None:
                 latents = parameter_codes([generator[p.name] for p in ordered], len(train), kind, head.latent_dim,
                                           without)
             if kind not in ("codes", "codes+sections"):
-                model.sections = None   # the code is replaced whole: no cross-section at its tail for nearest
+                model.sections = None   # the code is replaced or extended: no cross-section at its tail for nearest
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 fit_head(cfg, model, latents, index, train, val, Path(tmp), False, [])

@@ -36,6 +36,7 @@ from typing import NamedTuple
 import lightning as L
 import torch
 from common import append_row, kept_folder, load_encoder, load_run, pipe_fit
+from mesh_slices import dataset_slices, standardised
 from omegaconf import DictConfig
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
 from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
@@ -136,6 +137,8 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
     unscaled = build_model(cfg, data, (encoder, head, dynamics))   # its cross-section: the run's training parts'
     clouds = stack_clouds(pool + test)
     latents, logvars = unscaled.latent_distribution(clouds)
+    slices = (dataset_slices(data.dataset_dir, [p.name for p in pool + test])
+              if any("slices" in variant for _, variant in variants) else None)
     targets = (profile_targets(cfg, unscaled, latents, index, pool, fits)
                if any("pretrain" in variant for _, variant in variants) else None)
     for held_out in pool:
@@ -163,6 +166,11 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 sections = scaled_sections(unscaled.sections, factor)
                 weights = section_weights(encoder.latent_dim, latents.shape[1], factor)
                 read, read_logvars, read_spread = latents * weights, logvars, spread * weights
+            if "slices" in variant:                                         # the mesh's slices after it
+                sliced = standardised(slices, [index[p.name] for p in train])
+                read = torch.cat([read, sliced], dim=1)
+                read_logvars = torch.cat([read_logvars, torch.full_like(sliced, -torch.inf)], dim=1)
+                read_spread = torch.cat([read_spread, sliced[[index[p.name] for p in train]].std(0)])
             model = PIPEModel(encoder, trained, dynamics, *scales, sections=sections)
             if "pretrain" in variant:
                 pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))

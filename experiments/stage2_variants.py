@@ -31,6 +31,9 @@ loaded, and for each variant the head is trained again from the run's own initia
   sections=S   (part_cv.py only, on runs with code.sections) the cloud's cross-section weighed by S against the
                encoder's code in the head's input: its standardised numbers times S; S=0, the head reads the
                encoder's code alone (a head of that input, built and seeded as train.py builds it)
+  slices       (part_cv.py only) the head also reads slices through the part's mesh near its mating end
+               (mesh_slices.py), standardised over the fold's training parts: a head of that wider input,
+               seeded with the run's seed (+ 1000 K with init=K)
   init=K       the head's initial weights drawn anew, as train.py draws them but under seed + 1000 K (K >= 1):
                another member of an ensemble of heads (head_ensemble_cv.py)
   pretrain=S   the head first takes S Adam steps towards the training parts' identified profiles (gpr's
@@ -60,13 +63,14 @@ import lightning as L
 import torch
 from common import kept_folder, load_encoder, load_head_stage, load_run, pipe_fit, pooled_features, score
 from lightning.pytorch.callbacks import EMAWeightAveraging
+from mesh_slices import SLICE_SIZE
 from omegaconf import DictConfig
 from profile_pretraining import FITS, pretrain_head, profile_targets
 
 from pipe.data.batches import stack_clouds
 from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import FORCE_LOSSES
-from pipe.pipeline import build_components, build_model
+from pipe.pipeline import build_components, build_model, build_plugin
 from pipe.training import fit as fit_module
 from pipe.training.stages import HeadStage, check_finite
 
@@ -171,8 +175,8 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
 
 
 KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr",
-         "pretrain", "hidden", "local", "init", "clip", "sections", "encoder", "mu")
-PART_CV_ONLY = ("clip", "sections")     # the kinds that change what a held-out part's code is
+         "pretrain", "hidden", "local", "init", "clip", "sections", "slices", "encoder", "mu")
+PART_CV_ONLY = ("clip", "sections", "slices")     # the kinds that change what a held-out part's code is
 HEAD_SIZES = {"hidden": "hidden", "local": "num_local_models"}    # variant kind: the head's option it sets
 WORDS = {"select": ("fit",), "loss": tuple(FORCE_LOSSES)}     # the kinds whose value is a word, and their words
 
@@ -217,8 +221,14 @@ def variant_head(cfg: DictConfig, variant: dict[str, float | str],
                  head: ParameterHead) -> tuple[ParameterHead, dict[str, torch.Tensor]]:
     """The head a variant trains and its initial weights: the run's own `head`, or for hidden=H and local=N a
     head of that size (or input, for sections=0), built and seeded as train.py builds its components (under
-    seed + 1000 K for init=K); sections=S with S > 0 reads an input of the run's size."""
+    seed + 1000 K for init=K); sections=S with S > 0 reads an input of the run's size; slices reads the run's
+    input and the mesh's slices after it (a head of that width seeded with the run's seed, + 1000 K)."""
     sizes = {HEAD_SIZES[kind]: int(value) for kind, value in variant.items() if kind in HEAD_SIZES}
+    if "slices" in variant:
+        L.seed_everything(cfg.seed + 1000 * int(variant.get("init", 0)), workers=True)
+        head = build_plugin("head", cfg.head, ParameterHead, latent_dim=head.latent_dim + SLICE_SIZE,
+                            num_parameters=head.num_parameters)
+        return head, copy.deepcopy(head.state_dict())
     if sizes or "init" in variant or variant.get("sections") == 0:
         sized = copy.deepcopy(cfg)
         sized.head.update(sizes)

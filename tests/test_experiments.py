@@ -69,6 +69,7 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     ("stage2_variants.py", "noise=0.3+select=loss", "unknown variant"), ("stage2_variants.py", "loss", "unknown"),
     ("stage2_variants.py", "mu=0.001+select=fit", "combine with neither"),
     ("stage2_variants.py", "clip=0", "run it with part_cv.py"), ("stage2_variants.py", "sections=0", "part_cv.py"),
+    ("stage2_variants.py", "slices", "part_cv.py"),
     ("part_cv.py", "sections=-1", "at least 0"),
     ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
 def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(script, spec, message, tmp_path):
@@ -198,7 +199,7 @@ def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tm
 def test_part_cv_holds_out_each_non_test_part_in_turn(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
     # ema=2 differs only if the averaged head is the one kept (before KeptAverage, the default's to the digit)
-    variants = ("default", "loss=mse", "mu=0.01", "ema=2", "sections=0", "sections=3", "sections=1")
+    variants = ("default", "loss=mse", "mu=0.01", "ema=2", "sections=0", "sections=3", "slices", "sections=1")
     run_script("part_cv.py", str(rows_file), str(trained_run.run_dir), "--variants", ",".join(variants))
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     # every training and validation part of the tiny domain held out once per variant; the test part never
@@ -337,10 +338,13 @@ def test_principal_codes_are_the_training_parts_whitened_principal_components():
 @pytest.mark.slow
 def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
-    run_script("parameter_codes.py", str(rows_file), str(trained_run.run_dir), "--codes", "codes,geometry,features")
-    codes, geometry, features = (json.loads(line) for line in rows_file.read_text().splitlines())
-    assert (codes["variant"], geometry["variant"], features["variant"]) == ("codes", "geometry", "features")
+    run_script("parameter_codes.py", str(rows_file), str(trained_run.run_dir), "--codes",
+               "codes,geometry,features,codes+slices")
+    codes, geometry, features, sliced = (json.loads(line) for line in rows_file.read_text().splitlines())
+    assert [row["variant"] for row in (codes, geometry, features, sliced)] == [
+        "codes", "geometry", "features", "codes+slices"]
     assert math.isfinite(features["test"]["pipe"]) and features["test"]["pipe"] != codes["test"]["pipe"]
+    assert math.isfinite(sliced["test"]["pipe"]) and sliced["test"]["pipe"] != codes["test"]["pipe"]
     assert codes["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
     assert codes["test"]["nearest"] == pytest.approx(trained_run.results["nearest"].domain["fit_F"], abs=1e-9)
     assert geometry["test"]["pipe"] != pytest.approx(codes["test"]["pipe"], abs=1e-6)
@@ -689,3 +693,38 @@ def test_contact_points_summary_gives_points_per_contact_per_family_and_cloud_si
         "(1.00 to 1.00), none in 0",
         "rect, 1024 points, 2 parts: 1.50 points per contact (1.00 to 2.00); within 1 mm of the mating end 0.15 "
         "(0.00 to 0.30), none in 1"]
+
+
+def test_mesh_slices_count_a_shells_pins_apart_and_measure_their_outlines():
+    """A tube (radii 4 and 5, z 0 to 20) with two pins (radius 1, z 1 to 15) inside, as 16-gons: 0.5 mm up the
+    plane cuts the tube's ring alone, 2 and 5 mm up the ring and both pins, three regions; the lengths and areas
+    are the 16-gons' (perimeter 2 n r sin(pi / n), area n r^2 sin(2 pi / n) / 2). A mesh 8 mm long has no
+    section 10 mm up: no region, the floors."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import numpy as np
+    import trimesh
+    from mesh_slices import FLOOR, slice_descriptor
+
+    n = 16
+    tube = trimesh.creation.annulus(4.0, 5.0, 20.0, sections=n).apply_translation((0.0, 0.0, 10.0))
+    pins = [trimesh.creation.cylinder(1.0, 14.0, sections=n).apply_translation((x, 0.0, 8.0)) for x in (-2.0, 2.0)]
+    perimeter = {r: 2 * n * r * math.sin(math.pi / n) for r in (1.0, 4.0, 5.0)}
+    area = {r: n * r * r * math.sin(2 * math.pi / n) / 2 for r in (1.0, 4.0, 5.0)}
+    ring = (math.log(2), math.log(perimeter[5.0] + perimeter[4.0]), math.log(area[5.0] - area[4.0]))
+    ring_and_pins = (math.log(4), math.log(perimeter[5.0] + perimeter[4.0] + 2 * perimeter[1.0]),
+                     math.log(area[5.0] - area[4.0] + 2 * area[1.0]))
+    found = slice_descriptor(trimesh.util.concatenate([tube, *pins]), (0.5, 2.0, 5.0))
+    assert found == pytest.approx(np.array(ring + ring_and_pins + ring_and_pins), abs=1e-9)
+    short = trimesh.creation.cylinder(1.0, 8.0, sections=n)
+    assert slice_descriptor(short, (10.0,)) == pytest.approx([0.0, math.log(FLOOR), math.log(FLOOR)])
+
+
+def test_mesh_slices_are_standardised_by_the_training_rows_with_a_floored_spread():
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import torch
+    from mesh_slices import MIN_SPREAD, standardised
+
+    values = torch.tensor([[1.0, 2.0], [3.0, 2.0], [5.0, 7.0]], dtype=torch.float64)
+    # rows 0 and 1: mean (2, 2), spread (sqrt 2, 0 -> MIN_SPREAD)
+    expected = [-1 / math.sqrt(2), 0.0, 1 / math.sqrt(2), 0.0, 3 / math.sqrt(2), 5 / MIN_SPREAD]
+    assert standardised(values, [0, 1]).flatten().tolist() == pytest.approx(expected, rel=1e-6)
