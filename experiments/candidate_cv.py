@@ -22,7 +22,6 @@ Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import statistics
@@ -36,7 +35,7 @@ from common import append_row, kept_folder, two_candidates
 from omegaconf import OmegaConf
 from part_cv import fold_models
 from profile_pretraining import FITS
-from summarise import domain_of
+from summarise import domain_of, read_rows
 
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
@@ -166,10 +165,10 @@ def main() -> None:
                     "each fold")
     args = ap.parse_args()
     if args.table:
-        rows = [json.loads(line) for line in Path(args.out).read_text().splitlines()]
+        rows = read_rows(args.out)
         print(table(rows), paired_table(rows), sep="\n\n")
         if args.test:
-            test_rows = [json.loads(line) for line in Path(args.test).read_text().splitlines()]
+            test_rows = read_rows(args.test)
             print("", on_test_parts(rows, test_rows), sep="\n")
         return
     for run in args.runs:

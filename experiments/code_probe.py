@@ -18,7 +18,6 @@ training parts). Usage:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from collections import defaultdict
 from pathlib import Path
@@ -28,7 +27,7 @@ import torch
 from common import append_row, kept_folder, load_encoder, load_run, pooled_features
 from parameter_codes import generator_parts, hidden_parameters, shape_parameters
 from sklearn.linear_model import RidgeCV
-from summarise import domain_of, spread
+from summarise import domain_of, read_rows, spread
 
 from pipe.data.batches import stack_clouds
 from pipe.model.sections import SectionCode
@@ -94,7 +93,7 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="summarise OUT's rows instead of running")
     args = ap.parse_args()
     if args.table:
-        print(table([json.loads(line) for line in Path(args.out).read_text().splitlines() if line.strip()]))
+        print(table(read_rows(args.out)))
         return
     for run in args.runs:
         append_row(args.out, run_row(Path(run), args.layer))

@@ -23,7 +23,6 @@ Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import tempfile
@@ -36,7 +35,7 @@ from common import append_row, kept_folder, load_encoder, load_run
 from part_cv import fold_models
 from profile_pretraining import FITS
 from stage2_variants import parse_variant, variant_head
-from summarise import domain_of
+from summarise import domain_of, read_rows
 
 from pipe.data.batches import stack_clouds
 from pipe.evaluation.context import EvalContext
@@ -126,7 +125,7 @@ def main() -> None:
                     "validation and test parts instead of the cross-validation")
     args = ap.parse_args()
     if args.table:
-        print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
+        print(table(read_rows(args.out)))
         return
     if args.heads < 2:
         raise SystemExit(f"--heads {args.heads}: an ensemble needs at least 2 heads")

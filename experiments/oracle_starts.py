@@ -17,7 +17,6 @@ Usage (one thread):
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 from collections import defaultdict
@@ -25,7 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from common import append_row, oracle_context
-from summarise import domain_of
+from summarise import domain_of, read_rows
 
 from pipe.data.preprocess import Profile
 from pipe.evaluation.evaluate import evaluate_methods
@@ -69,7 +68,7 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     args = ap.parse_args()
     if args.table:
-        print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
+        print(table(read_rows(args.out)))
         return
     for run in args.runs:
         cfg, test, ctx = oracle_context(Path(run))

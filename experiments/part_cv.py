@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import math
 import os
 import statistics
@@ -40,7 +39,7 @@ from mesh_slices import dataset_slices, standardised
 from omegaconf import DictConfig
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
 from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
-from summarise import domain_of
+from summarise import domain_of, read_rows
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import PartData, PreparedDomain, data_scales
@@ -200,7 +199,7 @@ def main() -> None:
                     "the default of --stage1), or in every run (all)")
     args = ap.parse_args()
     if args.table:
-        print(table([json.loads(line) for line in Path(args.out).read_text().splitlines()]))
+        print(table(read_rows(args.out)))
         return
     variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]
     for spec, variant in variants:     # before any run: what a fold without validation parts cannot do

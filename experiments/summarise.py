@@ -31,8 +31,16 @@ def domain_of(run: str) -> str:
     return "/".join(parts[-3:-1]) if parts[-2].startswith("train_") else parts[-2]
 
 
+def read_rows(path: str | Path) -> list[dict]:
+    """The rows of a JSON lines file the scripts appended to (`common.append_row`), blank lines skipped; a
+    missing file stops the script naming it."""
+    if not Path(path).is_file():
+        raise SystemExit(f"{path}: no such file of result rows")
+    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+
+
 def main(paths: list[str]) -> None:
-    rows = [json.loads(line) for path in paths for line in Path(path).read_text().splitlines() if line.strip()]
+    rows = [row for path in paths for row in read_rows(path)]
     table: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     for row in rows:
         table[domain_of(row["run"])][row["variant"]].append(row)

@@ -728,3 +728,14 @@ def test_mesh_slices_are_standardised_by_the_training_rows_with_a_floored_spread
     # rows 0 and 1: mean (2, 2), spread (sqrt 2, 0 -> MIN_SPREAD)
     expected = [-1 / math.sqrt(2), 0.0, 1 / math.sqrt(2), 0.0, 3 / math.sqrt(2), 5 / MIN_SPREAD]
     assert standardised(values, [0, 1]).flatten().tolist() == pytest.approx(expected, rel=1e-6)
+
+
+def test_read_rows_skips_blank_lines_and_names_a_missing_file(tmp_path):
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from summarise import read_rows
+
+    rows_file = tmp_path / "rows.jsonl"
+    rows_file.write_text('{"a": 1}\n\n{"a": 2}\n')
+    assert read_rows(rows_file) == [{"a": 1}, {"a": 2}]
+    with pytest.raises(SystemExit, match="no/such.jsonl: no such file of result rows"):
+        read_rows(tmp_path / "no/such.jsonl")
