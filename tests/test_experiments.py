@@ -232,11 +232,13 @@ def test_part_cv_table_averages_the_held_out_parts_per_seed(tmp_path):
             ("runs/pins/seed_1", "a"): (30.0, 90.0), ("runs/pins/seed_1", "b"): (80.0, 10.0)}
     rows = [{"run": run, "variant": variant, "held_out": part, "fit": fit}
             for (run, part), pair in fits.items() for variant, fit in zip(("default", "loss=nmse"), pair)]
+    for row in rows[1::2]:                   # nmse's rows carry nearest's FIT, 10 points below PIPE's
+        row["nearest"] = row["fit"] - 10.0
     printed = printed_table("part_cv.py", rows, tmp_path, "--table")
     # default: seed means 60 and 55, median of 50, 70, 30, 80 = 60; nmse: seed means 50 and 50, median 50,
     # above default in 2 of the 4 held-out cases (60 > 50, 90 > 30)
-    assert f"| pins | default | 2 | 57.50 ± {statistics.stdev([60.0, 55.0]):.2f} | 60.00 |  |" in printed
-    assert "| pins | loss=nmse | 2 | 50.00 ± 0.00 | 50.00 | 2 of 4 |" in printed
+    assert f"| pins | default | 2 | 57.50 ± {statistics.stdev([60.0, 55.0]):.2f} | 60.00 |  |  |" in printed
+    assert "| pins | loss=nmse | 2 | 50.00 ± 0.00 | 50.00 | 2 of 4 | 40.00 ± 0.00 |" in printed
 
 
 @pytest.mark.slow
