@@ -10,7 +10,8 @@ from the part's lowest point (the mating end: parts are inserted along -z), as l
 boundary's length [mm], the area [mm^2]. A depth beyond the part cuts nothing: zeros there, floored.
 
 The descriptor is standardised over a fold's or run's training parts and appended to the head's input by
-`part_cv.py --variants slices` and `parameter_codes.py --codes codes+slices`. Print a dataset's descriptors:
+`part_cv.py --variants slices` and `parameter_codes.py --codes codes+slices`; results: docs/experiments.md,
+"Slices through the mesh near its mating end". Print a dataset's descriptors:
   python experiments/mesh_slices.py data/synthetic dsub15 dsub26
 """
 from __future__ import annotations
