@@ -12,7 +12,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pipe.data.prepared import PreparedDomain
 from pipe.evaluation.context import EvalContext
-from pipe.evaluation.evaluate import evaluate_methods
+from pipe.evaluation.evaluate import MethodResult, evaluate_methods
 from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
 from pipe.pipeline import build_components, build_model, load_domain, training_record, weights_dir
@@ -78,13 +78,20 @@ def load_head_stage(model: torch.nn.Module, checkpoint: Path) -> None:
     model.load_state_dict({k.removeprefix("model."): v for k, v in state.items() if k.startswith("model.")})
 
 
-def fits(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor, index: dict[str, int],
-         split: str, methods: list[str]) -> dict[str, float]:
-    """Each method's FIT(F) on a split's parts, as the evaluation reports it (the baselines read the part of
+def results(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
+            index: dict[str, int], split: str, methods: list[str]) -> dict[str, MethodResult]:
+    """Each method's results on a split's parts, as the evaluation reports them (the baselines read the part of
     the code of their lowest validation error; PIPE without its band)."""
     ctx = EvalContext(model, latents, index, data.splits["train"], 1.0 / cfg.data.rate_hz, cfg.seed,
                       dict(cfg.evaluation), val=data.splits["val"], logvars=None)
-    return {name: result.domain["fit_F"] for name, result in evaluate_methods(ctx, data.splits[split], methods).items()}
+    return evaluate_methods(ctx, data.splits[split], methods)
+
+
+def fits(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor, index: dict[str, int],
+         split: str, methods: list[str]) -> dict[str, float]:
+    """Each method's FIT(F) on a split's parts (`results`), averaged over the parts."""
+    return {name: result.domain["fit_F"]
+            for name, result in results(cfg, data, model, latents, index, split, methods).items()}
 
 
 def pipe_fit(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
@@ -95,12 +102,16 @@ def pipe_fit(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: t
 
 def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,
           index: dict[str, int]) -> None:
-    """PIPE's and `nearest`'s FIT(F) on the validation and the test parts, and PIPE's on the training parts
-    (how well the head fits what it was trained on), added to `row`, printed and appended to the JSON lines
-    file `out`."""
+    """PIPE's and `nearest`'s FIT(F) on the validation and the test parts (and on each test part, `test_parts`),
+    and PIPE's on the training parts (how well the head fits what it was trained on), added to `row`, printed
+    and appended to the JSON lines file `out`."""
     for split in ("train", "val", "test"):
         methods = ["pipe"] if split == "train" else ["pipe", "nearest"]     # a training part is its own nearest
-        row[split] = fits(cfg, data, model, latents, index, split, methods)
+        found = results(cfg, data, model, latents, index, split, methods)
+        row[split] = {name: result.domain["fit_F"] for name, result in found.items()}
+        if split == "test":
+            row["test_parts"] = {name: {part: metrics["fit_F"] for part, metrics in result.per_part.items()}
+                                 for name, result in found.items()}
     append_row(out, row)
 
 

@@ -348,6 +348,8 @@ def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(tra
     assert math.isfinite(features["test"]["pipe"]) and features["test"]["pipe"] != codes["test"]["pipe"]
     assert math.isfinite(sliced["test"]["pipe"]) and sliced["test"]["pipe"] != codes["test"]["pipe"]
     assert codes["test"]["pipe"] == pytest.approx(trained_run.results["pipe"].domain["fit_F"], abs=1e-9)
+    # each test part's FIT too, whose mean over the parts is the domain's
+    assert statistics.fmean(codes["test_parts"]["pipe"].values()) == pytest.approx(codes["test"]["pipe"], abs=1e-9)
     assert codes["test"]["nearest"] == pytest.approx(trained_run.results["nearest"].domain["fit_F"], abs=1e-9)
     assert geometry["test"]["pipe"] != pytest.approx(codes["test"]["pipe"], abs=1e-6)
 
