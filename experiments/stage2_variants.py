@@ -195,6 +195,9 @@ def parse_variant(spec: str) -> dict[str, float | str]:
     if {"encoder", "mu"} & exclusive and len(exclusive) > 1:
         raise SystemExit(f"unknown variant {spec!r}: encoder= and mu= combine with neither each other nor select, wd, "
                          "cosine or std (their optimiser and codes are their own)")
+    if "slices" in variant and ({"hidden", "local", "encoder", "mu"} & variant.keys() or variant.get("sections") == 0):
+        raise SystemExit(f"unknown variant {spec!r}: slices combine with neither hidden, local, encoder, mu nor "
+                         "sections=0 (its head's input and size are its own)")
     return variant
 
 

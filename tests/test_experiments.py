@@ -69,7 +69,8 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     ("stage2_variants.py", "noise=0.3+select=loss", "unknown variant"), ("stage2_variants.py", "loss", "unknown"),
     ("stage2_variants.py", "mu=0.001+select=fit", "combine with neither"),
     ("stage2_variants.py", "clip=0", "run it with part_cv.py"), ("stage2_variants.py", "sections=0", "part_cv.py"),
-    ("stage2_variants.py", "slices", "part_cv.py"),
+    ("stage2_variants.py", "slices", "part_cv.py"), ("part_cv.py", "slices+hidden=16", "combine with neither"),
+    ("part_cv.py", "slices+sections=0", "combine with neither"),
     ("part_cv.py", "sections=-1", "at least 0"),
     ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
 def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(script, spec, message, tmp_path):
