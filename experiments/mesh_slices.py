@@ -30,12 +30,11 @@ import trimesh
 from pipe.data.dataset import find_mesh
 from pipe.data.mesh import load_mesh, orient
 from pipe.data.spec import load_spec
+from pipe.model.sections import MIN_SPREAD
 
 SLICE_DEPTHS_MM = (0.5, 2.0, 5.0, 10.0)   # from the mating end: a D-sub's pins start 0.8 mm behind its rim
 SLICE_SIZE = 3 * len(SLICE_DEPTHS_MM)
 FLOOR = 1e-3                              # the log of an empty slice's length and area is floored here
-MIN_SPREAD = 0.05                         # as pipe.model.sections: a smaller spread over the training parts is
-                                          #   noise, not geometry
 
 
 def slice_regions(mesh: trimesh.Trimesh, height: float) -> shapely.Geometry | None:
@@ -76,8 +75,8 @@ def dataset_slices(root: str | Path, names: list[str]) -> torch.Tensor:
 
 
 def standardised(values: torch.Tensor, train_rows: list[int]) -> torch.Tensor:
-    """`values` standardised by the mean and spread of its `train_rows` (a spread under MIN_SPREAD raised to
-    it), float32."""
+    """`values` standardised by the mean and spread of its `train_rows` (a spread under the cross-section's
+    MIN_SPREAD raised to it: less is noise, not geometry), float32."""
     train = values[train_rows]
     return ((values - train.mean(0)) / train.std(0).clamp_min(MIN_SPREAD)).float()
 

@@ -40,7 +40,7 @@ from mesh_slices import dataset_slices, standardised
 from omegaconf import DictConfig
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
 from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
-from summarise import domain_of, read_rows
+from summarise import domain_of, read_rows, spread
 
 from pipe.data.batches import stack_clouds
 from pipe.data.prepared import PartData, PreparedDomain, data_scales
@@ -76,8 +76,7 @@ def table(rows: list[dict]) -> str:
 def seed_spread(cases: dict[tuple[str, str], float]) -> str:
     """FIT(F) per (run, held-out part) as the mean ± standard deviation over the runs of each run's mean."""
     runs = sorted({run for run, _ in cases})
-    means = [statistics.fmean(fit for (r, _), fit in cases.items() if r == run) for run in runs]
-    return f"{statistics.fmean(means):.2f} ± {statistics.stdev(means) if len(means) > 1 else 0.0:.2f}"
+    return spread([statistics.fmean(fit for (r, _), fit in cases.items() if r == run) for run in runs])
 
 
 def scaled_sections(sections: SectionCode, factor: float) -> SectionCode:
@@ -176,10 +175,11 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 weights = section_weights(encoder.latent_dim, latents.shape[1], factor)
                 read, read_logvars, read_spread = latents * weights, logvars, spread * weights
             if "slices" in variant:                                         # the mesh's slices after it
-                sliced = standardised(slices, [index[p.name] for p in train])
+                rows = [index[p.name] for p in train]
+                sliced = standardised(slices, rows)
                 read = torch.cat([read, sliced], dim=1)
                 read_logvars = torch.cat([read_logvars, torch.full_like(sliced, -torch.inf)], dim=1)
-                read_spread = torch.cat([read_spread, sliced[[index[p.name] for p in train]].std(0)])
+                read_spread = torch.cat([read_spread, sliced[rows].std(0)])
             model = PIPEModel(encoder, trained, dynamics, *scales, sections=sections)
             if "pretrain" in variant:
                 pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
