@@ -50,12 +50,13 @@ def main() -> None:
         return
     mesh = Path(args.mesh)
     cloud, _ = sample_mesh(mesh, cfg, card)
-    z, logvar = model.latent_distribution(torch.from_numpy(cloud.points)[None])
+    geometry = torch.from_numpy(cloud.points)[None], torch.from_numpy(cloud.slices)[None]
+    z, logvar = model.latent_distribution(*geometry)
     depth = torch.linspace(0.0, 5.0, int(2.2 * card.rate_hz))[None]
     band = card.band.settings
     steps = {
         "sample the mesh": lambda: sample_mesh(mesh, cfg, card),
-        "encode": lambda: model.latent(torch.from_numpy(cloud.points)[None]),
+        "encode": lambda: model.latent(*geometry),
         "Theta(p_z) on 201 depths": lambda: model.profile(z, torch.tensor([5.0]))(torch.linspace(0, 5, 201)[None]),
         "force along the ramp": lambda: model(z, depth, 1.0 / card.rate_hz),
         f"force band ({band.samples} latent draws)": lambda: force_band(model, z[0], logvar[0], depth,

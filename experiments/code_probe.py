@@ -29,7 +29,7 @@ from parameter_codes import generator_parts, hidden_parameters, shape_parameters
 from sklearn.linear_model import RidgeCV
 from summarise import domain_of, read_rows, spread
 
-from pipe.data.batches import stack_clouds
+from pipe.data.batches import stack_clouds, stack_geometry
 from pipe.model.sections import SectionCode
 from pipe.pipeline import build_model
 
@@ -54,12 +54,13 @@ def run_row(run_dir: Path, layer: str) -> dict:
     load_encoder(encoder, folder)
     train, test = data.splits["train"], data.splits["test"]
     model = build_model(cfg, data, (encoder, head, dynamics))
-    clouds = stack_clouds(train + test)
+    clouds, slices = stack_geometry(train + test)
     with torch.no_grad():
         if layer == "sections":
             read = SectionCode.fitted(stack_clouds(train))(clouds)
         else:
-            read = model.latent_distribution(clouds)[0] if layer == "codes" else pooled_features(encoder, clouds)
+            read = (model.latent_distribution(clouds, slices)[0] if layer == "codes"
+                    else pooled_features(encoder, clouds))
     codes = read.double().numpy()
     generator = generator_parts(cfg)
     rows = [shape_parameters(generator[p.name]) | hidden_parameters(generator[p.name]) for p in train + test]

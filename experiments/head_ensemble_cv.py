@@ -37,7 +37,7 @@ from profile_pretraining import FITS
 from stage2_variants import parse_variant, variant_head
 from summarise import domain_of, read_rows
 
-from pipe.data.batches import stack_clouds
+from pipe.data.batches import stack_geometry
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.methods import model_forces
 from pipe.pipeline import build_model
@@ -71,7 +71,7 @@ def own_split(run: Path, heads: int, out: str) -> None:
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
     base = build_model(cfg, data, (encoder, head, dynamics))
     index = {p.name: i for i, p in enumerate(train + val + test)}
-    latents, _ = base.latent_distribution(stack_clouds(train + val + test))
+    latents, _ = base.latent_distribution(*stack_geometry(train + val + test))
     dt = 1.0 / cfg.data.rate_hz
     members = []
     for spec in ["default", *(f"init={k}" for k in range(1, heads))]:

@@ -41,13 +41,14 @@ from pathlib import Path
 
 import torch
 from common import kept_folder, load_encoder, load_run, pooled_features, score
-from mesh_slices import SLICE_SIZE, dataset_slices, standardised
 from omegaconf import DictConfig, OmegaConf
 
-from pipe.data.batches import stack_clouds
+from pipe.data.batches import stack_clouds, stack_slices
+from pipe.data.slices import SLICE_SIZE
 from pipe.model.interfaces import ParameterHead
 from pipe.model.sections import SECTION_SIZE, SectionCode
-from pipe.pipeline import build_model, build_plugin, uses_sections
+from pipe.model.slices import SliceCode
+from pipe.pipeline import build_model, build_plugin, uses_sections, uses_slices
 from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.families import family_parts
 from pipe.training.fit import fit_head
@@ -146,7 +147,7 @@ def main() -> None:
         initial = copy.deepcopy(head.state_dict())
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         ordered = train + val + test
-        clouds = stack_clouds(ordered)
+        clouds, slices = stack_clouds(ordered), stack_slices(ordered)
         index = {p.name: i for i, p in enumerate(ordered)}
         generator = generator_parts(cfg)
         known = set(shape_parameters(generator[train[0].name]) | hidden_parameters(generator[train[0].name]))
@@ -156,6 +157,9 @@ def main() -> None:
         if "codes+sections" in kinds and uses_sections(cfg):
             raise SystemExit(f"{run_dir}: its code already ends with the cross-section (code.sections): "
                              "`codes` is codes+sections there")
+        if "codes+slices" in kinds and uses_slices(cfg):
+            raise SystemExit(f"{run_dir}: its code already ends with the mesh's slices (code.slices): "
+                             "`codes` is codes+slices there")
         for kind in kinds:
             head.load_state_dict(initial)
             kind_head = head
@@ -166,14 +170,13 @@ def main() -> None:
                                          num_parameters=len(dynamics.parameter_names))
             model = build_model(cfg, data, (encoder, kind_head, dynamics))
             if kind == "codes":
-                latents = model.latent_distribution(clouds)[0]
+                latents = model.latent_distribution(clouds, slices)[0]
             elif kind == "codes+sections":
-                latents = torch.cat([model.latent_distribution(clouds)[0],
+                latents = torch.cat([model.latent_distribution(clouds, slices)[0],
                                      section_codes(clouds, len(train), head.latent_dim)], dim=1)
             elif kind == "codes+slices":
-                slices = dataset_slices(data.dataset_dir, [p.name for p in ordered])
-                sliced = standardised(slices, list(range(len(train))))
-                latents = torch.cat([model.latent_distribution(clouds)[0], sliced], dim=1)
+                sliced = SliceCode.fitted(slices[: len(train)])(slices)
+                latents = torch.cat([model.latent_distribution(clouds, slices)[0], sliced], dim=1)
             elif kind == "sections":
                 latents = section_codes(clouds, len(train), head.latent_dim)
             elif kind == "features":

@@ -36,16 +36,16 @@ import lightning as L
 import torch
 from common import append_row, kept_folder, load_encoder, load_run
 from common import fits as method_fits
-from mesh_slices import dataset_slices, standardised
 from omegaconf import DictConfig
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
 from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
 from summarise import domain_of, read_rows, spread
 
-from pipe.data.batches import stack_clouds
+from pipe.data.batches import stack_clouds, stack_slices
 from pipe.data.prepared import PartData, PreparedDomain, data_scales
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SectionCode
+from pipe.model.slices import SliceCode
 from pipe.pipeline import build_model
 from pipe.training import fit as fit_module
 from pipe.training.force_choice import force_weights
@@ -143,10 +143,11 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
     pool, test = data.splits["train"] + data.splits["val"], data.splits["test"]
     index = {p.name: i for i, p in enumerate(pool + test)}
     unscaled = build_model(cfg, data, (encoder, head, dynamics))   # its cross-section: the run's training parts'
-    clouds = stack_clouds(pool + test)
-    latents, logvars = unscaled.latent_distribution(clouds)
-    slices = (dataset_slices(data.dataset_dir, [p.name for p in pool + test])
-              if any("slices" in variant for _, variant in variants) else None)
+    if unscaled.slices is not None and any("slices" in variant for _, variant in variants):
+        raise SystemExit(f"{run_dir}: its code already ends with the mesh's slices (code.slices): `default` reads "
+                         "them there")
+    clouds, slices = stack_clouds(pool + test), stack_slices(pool + test)
+    latents, logvars = unscaled.latent_distribution(clouds, slices)
     targets = (profile_targets(cfg, unscaled, latents, index, pool, fits)
                if any("pretrain" in variant for _, variant in variants) else None)
     for held_out in pool:
@@ -156,7 +157,7 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
         if retrain:
             fold_encoder(cfg, encoder, initial_encoder, train)
             own_encoder = copy.deepcopy(encoder.state_dict())
-            latents, logvars = unscaled.latent_distribution(clouds)
+            latents, logvars = unscaled.latent_distribution(clouds, slices)
         scales = data_scales(train)
         spread = latents[[index[p.name] for p in train]].std(0)
         steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
@@ -176,11 +177,11 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 read, read_logvars, read_spread = latents * weights, logvars, spread * weights
             if "slices" in variant:                                         # the mesh's slices after it
                 rows = [index[p.name] for p in train]
-                sliced = standardised(slices, rows)
+                sliced = SliceCode.fitted(slices[rows])(slices)
                 read = torch.cat([read, sliced], dim=1)
                 read_logvars = torch.cat([read_logvars, torch.full_like(sliced, -torch.inf)], dim=1)
                 read_spread = torch.cat([read_spread, sliced[rows].std(0)])
-            model = PIPEModel(encoder, trained, dynamics, *scales, sections=sections)
+            model = PIPEModel(encoder, trained, dynamics, *scales, sections=sections, slices=unscaled.slices)
             if "pretrain" in variant:
                 pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
             run_cfg = variant_config(cfg, variant)
@@ -190,7 +191,7 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
             with tempfile.TemporaryDirectory() as tmp:
                 fit_module.fit_head(run_cfg, model, read, index, train, [], Path(tmp), False, [])
             with torch.no_grad():
-                codes = model.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else read
+                codes = model.latent_distribution(clouds, slices)[0] if {"encoder", "mu"} & set(variant) else read
             if "clip" in variant:
                 codes = clipped(codes, [index[p.name] for p in train], float(variant["clip"]))
             yield Fold(cfg, fold, held_out, spec, model, codes, index, time.perf_counter() - start, retrain)

@@ -63,11 +63,11 @@ import lightning as L
 import torch
 from common import kept_folder, load_encoder, load_head_stage, load_run, pipe_fit, pooled_features, score
 from lightning.pytorch.callbacks import EMAWeightAveraging
-from mesh_slices import SLICE_SIZE
 from omegaconf import DictConfig
 from profile_pretraining import FITS, pretrain_head, profile_targets
 
-from pipe.data.batches import stack_clouds
+from pipe.data.batches import stack_geometry
+from pipe.data.slices import SLICE_SIZE
 from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import FORCE_LOSSES
 from pipe.pipeline import build_components, build_model, build_plugin
@@ -264,8 +264,8 @@ def main() -> None:
         train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
         model = build_model(cfg, data, (encoder, head, dynamics))
         index = {p.name: i for i, p in enumerate(train + val + test)}
-        clouds = stack_clouds(train + val + test)
-        latents, logvars = model.latent_distribution(clouds)
+        clouds, slices = stack_geometry(train + val + test)
+        latents, logvars = model.latent_distribution(clouds, slices)
         spread = latents[: len(train)].std(0)
         targets = (profile_targets(cfg, model, latents, index, train, args.fits)
                    if any("pretrain" in variant for _, variant in variants) else None)
@@ -292,7 +292,8 @@ def main() -> None:
             if "select" in variant:
                 trained.load_state_dict(kept.pop("state"))
             with torch.no_grad():
-                codes = candidate.latent_distribution(clouds)[0] if {"encoder", "mu"} & set(variant) else latents
+                codes = (candidate.latent_distribution(clouds, slices)[0] if {"encoder", "mu"} & set(variant)
+                         else latents)
             score(args.out, {"run": str(Path(run)), "variant": spec, "seconds": time.perf_counter() - start, **kept},
                   cfg, data, candidate, codes, index)
 

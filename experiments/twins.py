@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from common import append_row, kept_folder, load_encoder, load_head_stage, load_run
 
-from pipe.data.batches import stack_clouds
+from pipe.data.batches import stack_geometry
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.methods import model_forces
 from pipe.evaluation.metrics import fit_percent
@@ -58,7 +58,7 @@ def main() -> None:
         parts = train + val + test
         index = {p.name: i for i, p in enumerate(parts)}
         with torch.no_grad():
-            latents, _ = model.latent_distribution(stack_clouds(parts))
+            latents, _ = model.latent_distribution(*stack_geometry(parts))
         codes = latents[: len(train)]
         pairwise = torch.cdist(codes, codes)
         typical = float(pairwise[~torch.eye(len(train), dtype=torch.bool)].median())

@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 from common import kept_folder, load_run, score
 
-from pipe.data.batches import stack_clouds
+from pipe.data.batches import stack_geometry
 from pipe.data.dataset import load_dataset
 from pipe.data.prepared import PartData
 from pipe.data.preprocess import cloud_from_mesh
@@ -129,7 +129,7 @@ def main() -> None:
                 with tempfile.TemporaryDirectory() as tmp:
                     vae_s = fit_module.fit_vae(cfg, encoder, train, val, Path(tmp), False, [])
                     index = {p.name: i for i, p in enumerate(train + val + test)}
-                    latents = model.latent(stack_clouds(train + val + test))
+                    latents = model.latent(*stack_geometry(train + val + test))
                     head_s = fit_module.fit_head(cfg, model, latents, index, train, val, Path(tmp), False, [])
             finally:
                 fit_module.VAEStage = original

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from common import load_run, score
 
-from pipe.data.batches import stack_clouds
+from pipe.data.batches import stack_geometry
 from pipe.data.prepared import PartData
 from pipe.data.preprocess import cloud_from_mesh
 from pipe.pipeline import build_model
@@ -60,7 +60,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             vae_s = fit_vae(cfg, encoder, train + extra, val, Path(tmp), False, [])
             index = {p.name: i for i, p in enumerate(train + val + test)}
-            latents = model.latent(stack_clouds(train + val + test))
+            latents = model.latent(*stack_geometry(train + val + test))
             head_s = fit_head(cfg, model, latents, index, train, val, Path(tmp), False, [])
         score(args.out, {"run": str(run_dir), "variant": f"{args.tag}{len(extra)}_e{args.epochs}",
                          "seconds": [vae_s, head_s]}, cfg, data, model, latents, index)

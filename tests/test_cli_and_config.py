@@ -50,7 +50,8 @@ def test_default_config_and_command_line_overrides(monkeypatch):
 PAPER_SETUP = {"data.points": 4096, "data.steady_samples": 1, "encoder.latent_dim": 32, "head.num_local_models": 10,
                "stages.vae.epochs": 500, "stages.vae.batch_size": 10, "stages.vae.lr": 1e-4,
                "stages.head.epochs": 100, "stages.head.batch_size": 10, "stages.head.lr": 2e-4,
-               "stages.head.loss": "mse", "code.sections": False}   # "NN(P) = R(E(P))": the head reads the code alone
+               "stages.head.loss": "mse", "code.sections": False,   # "NN(P) = R(E(P))": the head reads the code alone
+               "code.slices": False}
 
 
 def _flat(cfg, prefix: str = "") -> dict:
@@ -70,11 +71,11 @@ def test_experiment_paper_pins_the_papers_setup(monkeypatch):
     assert cfg.encoder._target_.endswith("PointNetVAE") and cfg.head._target_.endswith("GaussianHead")
     assert cfg.model._target_.endswith("MDS2")
     # the defaults differ from the paper's setup in the number of points, stage 2's loss, the head's width,
-    # stage 1's force weight and the cross-section beside the code only (conf/experiment/paper.yaml, README,
-    # docs/experiments.md)
+    # stage 1's force weight and the cross-section and mesh slices beside the code only (conf/experiment/paper.yaml,
+    # README, docs/experiments.md)
     paper, default = (_flat(OmegaConf.to_container(c)) for c in (cfg, compose_config([])))
     assert {key for key in paper.keys() | default.keys() if paper.get(key) != default.get(key)} == {
-        "data.points", "stages.head.loss", "head.hidden", "stages.vae.force_weight", "code.sections"}
+        "data.points", "stages.head.loss", "head.hidden", "stages.vae.force_weight", "code.sections", "code.slices"}
 
 
 def test_a_test_part_may_not_leak_into_training():

@@ -14,12 +14,12 @@ from pipe.data.batches import stack_clouds
 from pipe.errors import PipeError
 from pipe.model.sections import (
     LENGTH_FRACTIONS,
-    MIN_SPREAD,
     SECTION_SIZE,
     TIP_REACHES_MM,
     SectionCode,
     section_descriptor,
 )
+from pipe.model.standardiser import MIN_SPREAD
 from pipe.model.uncertainty import BandSettings, latent_draws
 from pipe.pipeline import build_components, build_model, load_domain, run_domain
 
@@ -63,7 +63,7 @@ def test_the_training_parts_are_standardised_and_a_spread_below_the_clouds_resol
 
 
 def test_the_code_is_the_encoders_followed_by_the_sections_without_spread(tiny_data, tmp_path):
-    cfg = smoke_config(tiny_data, tmp_path)
+    cfg = smoke_config(tiny_data, tmp_path, "code.slices=false")
     data = load_domain(cfg)
     model = build_model(cfg, data)
     encoder_dim = model.encoder.latent_dim
@@ -77,7 +77,7 @@ def test_the_code_is_the_encoders_followed_by_the_sections_without_spread(tiny_d
     draws = latent_draws(mu[0], logvar[0], BandSettings())
     assert torch.equal(draws[:, encoder_dim:], mu[0, encoder_dim:].expand(len(draws), -1))   # no spread drawn
     assert torch.isfinite(draws).all()
-    off = smoke_config(tiny_data, tmp_path, "code.sections=false")
+    off = smoke_config(tiny_data, tmp_path, "code.sections=false", "code.slices=false")
     assert build_model(off, data).sections is None and build_components(off)[1].latent_dim == encoder_dim
 
 

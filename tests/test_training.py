@@ -16,6 +16,7 @@ from conftest import MEANPOOL_ENCODER, ROOT, TINY_DOMAIN, smoke_config
 from conftest import compose_config as config
 from omegaconf import OmegaConf
 
+from pipe.data.slices import SLICE_SIZE
 from pipe.model.sections import SECTION_SIZE
 from pipe.pipeline import build_components, run_domain
 
@@ -27,7 +28,7 @@ def test_every_combination_composes_and_builds(encoder, model, domain):
     cfg = config([f"encoder={encoder}", "head=gaussian", f"model={model}", f"domain={domain}",
                   "paths.output_dir=unused"])
     enc, head, dyn = build_components(cfg)
-    assert enc.latent_dim == 32 and head.latent_dim == 32 + SECTION_SIZE     # the code, then the cross-section
+    assert enc.latent_dim == 32 and head.latent_dim == 32 + SECTION_SIZE + SLICE_SIZE  # code, cross-section, slices
     assert head.num_parameters == len(dyn.parameter_names) == (4 if model == "mds2" else 3)
     cloud = torch.randn(2, cfg.data.points, 3)
     assert enc(cloud).recon.shape == cloud.shape
@@ -46,6 +47,8 @@ def test_the_defaults_are_the_papers_values_but_stage_2s_loss_the_heads_width_st
     assert dict(cfg.stages.head) == {"epochs": 100, "batch_size": 10, "lr": 2e-4, "loss": "nmse"}
     # the head reads the cloud's cross-section beside the code, kept on the validation parts (docs/experiments.md)
     assert cfg.code.sections is True
+    # and the mesh's slices near its mating end, kept by the cross-validation over the non-test parts
+    assert cfg.code.slices is True
     assert (cfg.domain.name, cfg.encoder._target_.endswith("PointNetVAE"), cfg.model._target_.endswith("MDS2")) \
         == ("conn", True, True)
 

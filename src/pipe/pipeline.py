@@ -28,8 +28,9 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from pipe.data.batches import stack_clouds
+from pipe.data.batches import stack_clouds, stack_geometry, stack_slices
 from pipe.data.prepared import PartData, PreparedDomain, data_scales, prepare_domain
+from pipe.data.slices import SLICE_SIZE
 from pipe.data.spec import SPEC_FILE
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
@@ -43,6 +44,7 @@ from pipe.model.card import BandCard, ModelCard
 from pipe.model.interfaces import DynamicModel, ParameterHead
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SECTION_SIZE, SectionCode
+from pipe.model.slices import SliceCode
 from pipe.model.uncertainty import BandSettings
 from pipe.model.vae import PointCloudVAE
 from pipe.synthetic import generate_dataset
@@ -190,28 +192,41 @@ def uses_sections(cfg: DictConfig) -> bool:
     return bool(OmegaConf.select(cfg, "code.sections", default=False))
 
 
+def uses_slices(cfg: DictConfig) -> bool:
+    """Whether the head reads the mesh's slices near its mating end after the code (`code.slices`; runs
+    configured before the option existed did not)."""
+    return bool(OmegaConf.select(cfg, "code.slices", default=False))
+
+
 def build_components(cfg: DictConfig) -> tuple[PointCloudVAE, ParameterHead, DynamicModel]:
     """The configured encoder, head and dynamic model, wired to each other's sizes (the head's input: the
-    encoder's code, and the cross-section's with `code.sections`)."""
+    encoder's code, the cross-section's with `code.sections` and the slices' with `code.slices`)."""
     encoder = build_plugin("encoder", cfg.encoder, PointCloudVAE, num_points=cfg.data.points)
     dynamics = build_plugin("model", cfg.model, DynamicModel)
-    head = build_plugin("head", cfg.head, ParameterHead,
-                        latent_dim=encoder.latent_dim + (SECTION_SIZE if uses_sections(cfg) else 0),
-                        num_parameters=len(dynamics.parameter_names))
+    width = encoder.latent_dim + (SECTION_SIZE if uses_sections(cfg) else 0) + (SLICE_SIZE if uses_slices(cfg) else 0)
+    head = build_plugin("head", cfg.head, ParameterHead, latent_dim=width, num_parameters=len(dynamics.parameter_names))
     return encoder, head, dynamics
 
 
 def build_model(cfg: DictConfig, data: PreparedDomain,
                 components: tuple[PointCloudVAE, ParameterHead, DynamicModel] | None = None) -> PIPEModel:
-    """PIPE of the configured (or the given) components, scaled by the domain's training parts, with their
-    cross-section's standardisation where `code.sections` asks for it."""
-    train, sections = data.splits["train"], None
+    """PIPE of the configured (or the given) components, scaled by the domain's training parts, with the
+    standardisation over them of the cross-section (`code.sections`) and of the slices (`code.slices`)."""
+    train, sections, slices = data.splits["train"], None, None
+    for option, wanted, what in (("code.sections", uses_sections(cfg), "the cross-section"),
+                                 ("code.slices", uses_slices(cfg), "the mesh's slices")):
+        if wanted and len(train) < 2:
+            raise PipeError(f"{option} standardises {what} over the training parts, and domain "
+                            f"{data.domain.name} has {len(train)}: give it two or more, or set {option}=false")
     if uses_sections(cfg):
-        if len(train) < 2:
-            raise PipeError(f"code.sections standardises the cross-section over the training parts, and domain "
-                            f"{data.domain.name} has {len(train)}: give it two or more, or set code.sections=false")
         sections = SectionCode.fitted(stack_clouds(train))
-    return PIPEModel(*(components or build_components(cfg)), *data_scales(train), sections=sections)
+    if uses_slices(cfg):
+        train_slices = stack_slices(train)
+        if train_slices is None:
+            raise PipeError(f"code.slices reads each training part's mesh slices, and domain {data.domain.name}'s "
+                            f"parts carry none (clouds not sampled from mesh files); set code.slices=false")
+        slices = SliceCode.fitted(train_slices)
+    return PIPEModel(*(components or build_components(cfg)), *data_scales(train), sections=sections, slices=slices)
 
 
 def model_card(cfg: DictConfig, data: PreparedDomain, dynamics: DynamicModel, band_offset: float) -> ModelCard:
@@ -413,7 +428,7 @@ class Trained:
 def latent_codes(model: PIPEModel, data: PreparedDomain) -> tuple[torch.Tensor, torch.Tensor, dict[str, int]]:
     """The mean codes and log-variances of all the domain's parts (test clouds are only encoded) and their rows."""
     all_parts = data.splits["train"] + data.splits["val"] + data.splits["test"]
-    latents, logvars = model.latent_distribution(stack_clouds(all_parts))
+    latents, logvars = model.latent_distribution(*stack_geometry(all_parts))
     return latents, logvars, {p.name: i for i, p in enumerate(all_parts)}
 
 

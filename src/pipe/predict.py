@@ -155,7 +155,9 @@ def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig, meshe
     (`pipe.model.uncertainty`; the force band widened by the card's calibrated offset). Every mesh is read
     before anything is predicted: a broken one stops the batch naming its file."""
     samples = [sample_mesh(path, cfg, card) for path in meshes]
-    z, logvar = model.latent_distribution(torch.from_numpy(np.stack([cloud.points for cloud, _ in samples])))
+    clouds = [cloud for cloud, _ in samples]
+    z, logvar = model.latent_distribution(torch.from_numpy(np.stack([c.points for c in clouds])),
+                                          torch.from_numpy(np.stack([c.slices for c in clouds])))
     rate = card.rate_hz
     if cfg.trajectory:
         time, depth = load_trajectory(Path(cfg.trajectory), cfg.trajectory_columns, rate)

@@ -26,6 +26,20 @@ def stack_clouds(parts: list[PartData]) -> torch.Tensor:
     return torch.from_numpy(np.stack([p.cloud.points for p in parts])).float()
 
 
+def stack_slices(parts: list[PartData]) -> torch.Tensor | None:
+    """The parts' mesh slices (pipe.data.slices) as one (parts, SLICE_SIZE) float64 tensor, None where a part
+    has none (a cloud not sampled from a mesh file)."""
+    if any(p.cloud.slices is None for p in parts):
+        return None
+    return torch.from_numpy(np.stack([p.cloud.slices for p in parts])).double()
+
+
+def stack_geometry(parts: list[PartData]) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """What PIPE encodes of the parts: their clouds (`stack_clouds`) and mesh slices (`stack_slices`), the
+    arguments of `PIPEModel.latent_distribution`."""
+    return stack_clouds(parts), stack_slices(parts)
+
+
 def sample_period(profile: Profile) -> float:
     return float(profile.time[1] - profile.time[0])
 

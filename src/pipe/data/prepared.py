@@ -1,5 +1,5 @@
-"""The prepared domain: per part of a domain its centred point cloud and its preprocessed profiles, computed
-from the dataset as the paper does, or read from a folder of stored parts.
+"""The prepared domain: per part of a domain its centred point cloud, its mesh's slices and its preprocessed
+profiles, computed from the dataset as the paper does, or read from a folder of stored parts.
 
 Stored parts spare training the preprocessing of every run (DVC's `preprocess` stage, `pipe data preprocess
 DATASET OUT`; training reads them with `data.prepared=<folder>`). The folder holds `prepared.json` (the
@@ -28,7 +28,7 @@ from pipe.data.spec import DatasetSpec, load_spec
 from pipe.errors import PipeError
 
 MANIFEST = "prepared.json"
-FORMAT = 1
+FORMAT = 2      # 2: each part's mesh slices (pipe.data.slices) beside its cloud
 
 
 @dataclass(frozen=True)
@@ -110,6 +110,8 @@ def _part_arrays(part: PartData) -> dict[str, np.ndarray]:
     if mesh is not None:
         arrays |= {"mesh_units": np.array(mesh.units), "mesh_extent_mm": np.array(mesh.extent_mm),
                    "mesh_watertight": np.array(mesh.watertight)}
+    if part.cloud.slices is not None:
+        arrays["slices"] = part.cloud.slices
     for k, (profile, static) in enumerate(zip(part.profiles, part.static_curves)):
         arrays |= {f"time_{k}": profile.time, f"depth_{k}": profile.depth, f"force_{k}": profile.force}
         if profile.force_clean is not None:
@@ -123,7 +125,7 @@ def _part_from_arrays(name: str, arrays: Mapping[str, np.ndarray]) -> PartData:
     mesh = None
     if "mesh_units" in arrays:
         mesh = MeshInfo(str(arrays["mesh_units"]), float(arrays["mesh_extent_mm"]), bool(arrays["mesh_watertight"]))
-    cloud = PointCloud(arrays["points"], arrays["centre"], str(arrays["centre_method"]), mesh)
+    cloud = PointCloud(arrays["points"], arrays["centre"], str(arrays["centre_method"]), mesh, arrays.get("slices"))
     profiles, statics = [], []
     for k in range(int(arrays["trials"])):
         clean = arrays.get(f"force_clean_{k}")
@@ -176,7 +178,10 @@ def read_prepared(folder: Path, dataset_dir: Path, version: str, settings: Prepr
         manifest = json.loads(manifest_path.read_text())
     except json.JSONDecodeError as exc:
         raise PipeError(f"not valid JSON ({exc}); {remake}", manifest_path) from None
-    if manifest.get("format") != FORMAT or manifest.get("settings") != asdict(settings):
+    if manifest.get("format") != FORMAT:
+        raise PipeError(f"was written in format {manifest.get('format')} of prepared parts, this version of pipe "
+                        f"reads format {FORMAT}; {remake}", manifest_path)
+    if manifest.get("settings") != asdict(settings):
         raise PipeError(f"was preprocessed with {manifest.get('settings')}, this run asks for {asdict(settings)}; "
                         f"{remake}", manifest_path)
     if manifest.get("dataset_version") != version:

@@ -37,6 +37,8 @@ class PointCloud:
     centre: np.ndarray  # (3,) the centre that was subtracted, mm, in the mesh's frame
     centre_method: str  # "volume", "convex hull" or "surface"
     mesh: MeshInfo | None = None
+    slices: np.ndarray | None = None   # (SLICE_SIZE,) the mesh's slices near its mating end (pipe.data.slices),
+                                       #   where the cloud was sampled from a mesh file
 
 
 @dataclass(frozen=True)
@@ -90,13 +92,14 @@ def cloud_from_mesh(path: str | Path, units: str = "mm", points: int = 1024, see
                     axis: str = "z") -> PointCloud:
     """The whole mesh -> point cloud chain of training, `pipe data pointcloud` and prediction: load the mesh
     file in mm (`units` its length unit, or "auto"), turn its insertion `axis` onto z (`orient`), sample
-    `points` points, centre them."""
+    `points` points, centre them; and slice the mesh near its mating end (`slice_descriptor`)."""
     from pipe.data.mesh import load_mesh, orient
+    from pipe.data.slices import slice_descriptor
 
     mesh = orient(load_mesh(path, units), axis, path)
     cloud = sample_point_cloud(mesh, points, seed=seed)
     info = MeshInfo(mesh.metadata["file_units"], float(mesh.extents.max()), bool(mesh.is_watertight))
-    return replace(cloud, mesh=info)
+    return replace(cloud, mesh=info, slices=slice_descriptor(mesh))
 
 
 def resample(trial: Trial, rate_hz: float) -> Profile:

@@ -13,13 +13,14 @@
 - mean:     the mean training force over depth.
 
 nearest, gpr and the blackbox read the part's code through the input of their lowest validation error
-(`CodeBaseline`): with code.sections on, the encoder's code and the cross-section together (what PIPE's head
-reads), the encoder's code alone, or the cross-section alone.
+(`CodeBaseline`): with code.sections or code.slices on, the encoder's code, the cloud's cross-section and the
+mesh's slices together (what PIPE's head reads), or any other combination of them.
 """
 
 from __future__ import annotations
 
 import copy
+import itertools
 import logging
 from abc import ABC, abstractmethod
 
@@ -31,6 +32,7 @@ from torch import nn
 
 from pipe.data.batches import unpad
 from pipe.data.prepared import PartData
+from pipe.data.slices import SLICE_SIZE
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.identification import Identified, Request, identify
 from pipe.model.pipe_model import PIPEModel
@@ -97,14 +99,32 @@ def validation_nmse(method: Method, ctx: EvalContext) -> float:
     return float(np.mean(scores))
 
 
-def code_inputs(ctx: EvalContext) -> dict[str, slice]:
-    """The parts of the latent code a baseline may read, by name, the first what PIPE's head reads: the whole
-    code and, where the model appends the cloud's cross-section (code.sections), the encoder's code alone and
-    the cross-section alone."""
-    if ctx.model.sections is None:
-        return {"code": slice(None)}
-    width = ctx.latents.shape[1] - SECTION_SIZE
-    return {"code+sections": slice(None), "code": slice(0, width), "sections": slice(width, None)}
+def code_blocks(ctx: EvalContext) -> dict[str, range]:
+    """The columns of the latent code by what made them: the encoder's code, then the cloud's cross-section
+    (code.sections) and the mesh's slices (code.slices) where the model appends them."""
+    sizes = {"sections": SECTION_SIZE if ctx.model.sections is not None else 0,
+             "slices": SLICE_SIZE if ctx.model.slices is not None else 0}
+    sizes = {"code": ctx.latents.shape[1] - sum(sizes.values())} | sizes
+    ends = list(itertools.accumulate(sizes.values()))
+    return {name: range(end - size, end) for (name, size), end in zip(sizes.items(), ends) if size}
+
+
+def code_inputs(ctx: EvalContext) -> dict[str, slice | torch.Tensor]:
+    """The parts of the latent code a baseline may read, by name ("code+slices": those blocks of `code_blocks`
+    side by side), the first what PIPE's head reads: every combination of the blocks, the larger first; a slice
+    of the code where its columns are contiguous, else their indices."""
+    blocks = code_blocks(ctx)
+    inputs: dict[str, slice | torch.Tensor] = {}
+    for size in range(len(blocks), 0, -1):
+        for names in itertools.combinations(blocks, size):
+            columns = [c for name in names for c in blocks[name]]
+            start, end, width = columns[0], columns[-1] + 1, ctx.latents.shape[1]
+            if columns != list(range(start, end)):
+                inputs["+".join(names)] = torch.tensor(columns)
+            else:
+                inputs["+".join(names)] = slice(None) if (start, end) == (0, width) else slice(
+                    start, end if end < width else None)
+    return inputs
 
 
 class CodeBaseline(Method):
@@ -141,10 +161,10 @@ class CodeBaseline(Method):
     def diagnostics(self, ctx, part):
         """Where there was a choice, which inputs it reads (1 or 0; their mean over seeds is the share of the
         seeds that chose them)."""
-        if len(code_inputs(ctx)) == 1:
+        blocks = code_blocks(ctx)
+        if len(blocks) == 1:
             return {}
-        return {f"{self.name}_reads_code": float(self.inputs in ("code", "code+sections")),
-                f"{self.name}_reads_sections": float(self.inputs in ("sections", "code+sections"))}
+        return {f"{self.name}_reads_{name}": float(name in self.inputs.split("+")) for name in blocks}
 
 
 @torch.no_grad()

@@ -11,14 +11,13 @@ it has no spread, so PIPE's band draws nothing for it.
 from __future__ import annotations
 
 import torch
-from torch import nn
+
+from pipe.model.standardiser import Standardiser
 
 TIP_REACHES_MM = (0.02, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)   # from the mating end: lead-ins, chamfers, contacts
 LENGTH_FRACTIONS = (0.25, 0.5, 0.75, 1.0)                     # of the part's length: tapers, shells, bodies
 SECTION_SIZE = 1 + 2 * (len(TIP_REACHES_MM) + len(LENGTH_FRACTIONS))
 MIN_WIDTH_MM = 1e-3          # a reach holding a single point on the axis has no width; its log is floored here
-MIN_SPREAD = 0.05            # of a log: 5 % of a size, about the spacing of 1024 points on a part; a smaller
-                             #   spread over the training parts is sampling noise, not geometry
 
 
 def section_descriptor(points: torch.Tensor) -> torch.Tensor:
@@ -38,26 +37,19 @@ def section_descriptor(points: torch.Tensor) -> torch.Tensor:
     return torch.cat([length.clamp_min(MIN_WIDTH_MM).log()[:, None], widths.log().flatten(1)], dim=1)
 
 
-class SectionCode(nn.Module):
-    """Clouds -> their `section_descriptor` standardised by the training parts' mean and spread, a spread below
-    MIN_SPREAD raised to it (so what the training parts do not vary stays near 0 for them, and a part that
-    differs there is not magnified by sampling noise)."""
+class SectionCode(Standardiser):
+    """Clouds -> their `section_descriptor` standardised by the training parts' (`Standardiser`)."""
 
     def __init__(self) -> None:
-        super().__init__()
-        self.register_buffer("mean", torch.zeros(SECTION_SIZE, dtype=torch.float64))
-        self.register_buffer("std", torch.ones(SECTION_SIZE, dtype=torch.float64))
+        super().__init__(SECTION_SIZE)
 
     @classmethod
     def fitted(cls, train_points: torch.Tensor) -> SectionCode:
         """Standardised by the training parts' clouds (B, n, 3) in mm; needs two of them for a spread."""
-        if len(train_points) < 2:
-            raise ValueError(f"the sections' spread needs at least 2 training parts, got {len(train_points)}")
         code = cls()
-        values = section_descriptor(train_points)
-        code.mean, code.std = values.mean(0), values.std(0).clamp_min(MIN_SPREAD)
+        code.fit(section_descriptor(train_points), "sections")
         return code
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Codes (B, SECTION_SIZE), float32, of clouds (B, n, 3) in mm."""
-        return ((section_descriptor(points) - self.mean) / self.std).float()
+        return self.standardise(section_descriptor(points))

@@ -76,23 +76,27 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
 
 def weight_differences(saved: Mapping[str, torch.Tensor], own: Mapping[str, torch.Tensor]) -> str | None:
     """What a checkpoint's weights and a module's do not share or shape alike (the first four named and a count
-    of the others, and the code.sections setting the checkpoint was trained with where that is what differs),
-    None when they fit."""
+    of the others, and the code.sections and code.slices settings the checkpoint was trained with where they
+    differ), None when they fit."""
     differing = sorted(saved.keys() ^ own.keys()) + sorted(
         key for key in saved.keys() & own.keys() if saved[key].shape != own[key].shape)
     if not differing:
         return None
     shown = ", ".join(differing[:4]) + (f" and {len(differing) - 4} more" if len(differing) > 4 else "")
-    sections = [any(".sections." in f".{key}" for key in keys) for keys in (saved, own)]
-    if sections[0] != sections[1]:
-        shown += f" (it was trained with code.sections={str(sections[0]).lower()})"
+    settings = []
+    for option in ("sections", "slices"):
+        made = [any(f".{option}." in f".{key}" for key in keys) for keys in (saved, own)]
+        if made[0] != made[1]:
+            settings.append(f"code.{option}={str(made[0]).lower()}")
+    if settings:
+        shown += f" (it was trained with {' and '.join(settings)})"
     return shown
 
 
 def check_resumable(module: L.LightningModule, checkpoint: Path, stage: str) -> None:
     """Refuse to resume a stage from a checkpoint whose weights this run's settings do not make (another force
-    term, encoder, latent size or code.sections): a message naming it and what differs, not Lightning's
-    traceback."""
+    term, encoder, latent size, code.sections or code.slices): a message naming it and what differs, not
+    Lightning's traceback."""
     saved = torch.load(checkpoint, map_location="cpu", weights_only=False, mmap=True)["state_dict"]
     if differing := weight_differences(saved, module.state_dict()):
         raise PipeError(f"was trained with other settings than this run's: the weights of stage {stage!r} differ in "
