@@ -22,6 +22,16 @@ def run_script(*args: str) -> str:
     return done.stdout
 
 
+@pytest.fixture(scope="module")
+def unsliced_run(tiny_data, tmp_path_factory):
+    """A smoke run trained without the mesh's slices (code.slices=false), for the scripts' `slices` variants,
+    which add them to a run's code."""
+    from pipe.pipeline import run_domain
+
+    return run_domain(smoke_config(tiny_data, tmp_path_factory.mktemp("unsliced"), "mlflow.enabled=false",
+                                   "code.slices=false"))
+
+
 def printed_table(script: str, rows: list[dict], tmp_path, *args: str) -> str:
     """What `script` prints for `rows` written to a JSON lines file (its --table, or summarise.py's output)."""
     rows_file = tmp_path / "rows.jsonl"
@@ -197,11 +207,11 @@ def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tm
 
 
 @pytest.mark.slow
-def test_part_cv_holds_out_each_non_test_part_in_turn(trained_run, tmp_path):
+def test_part_cv_holds_out_each_non_test_part_in_turn(unsliced_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
     # ema=2 differs only if the averaged head is the one kept (before KeptAverage, the default's to the digit)
     variants = ("default", "loss=mse", "mu=0.01", "ema=2", "sections=0", "sections=3", "slices", "sections=1")
-    run_script("part_cv.py", str(rows_file), str(trained_run.run_dir), "--variants", ",".join(variants))
+    run_script("part_cv.py", str(rows_file), str(unsliced_run.run_dir), "--variants", ",".join(variants))
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     # every training and validation part of the tiny domain held out once per variant; the test part never
     assert sorted((row["held_out"], row["variant"]) for row in rows) == sorted(
@@ -339,7 +349,8 @@ def test_principal_codes_are_the_training_parts_whitened_principal_components():
 
 
 @pytest.mark.slow
-def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(trained_run, tmp_path):
+def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(unsliced_run, tmp_path):
+    trained_run = unsliced_run
     rows_file = tmp_path / "rows.jsonl"
     run_script("parameter_codes.py", str(rows_file), str(trained_run.run_dir), "--codes",
                "codes,geometry,features,codes+slices")
@@ -356,11 +367,17 @@ def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(tra
 
 
 @pytest.mark.slow
-def test_parameter_codes_refuse_codes_and_sections_where_the_code_already_ends_with_them(trained_run, tmp_path):
-    done = subprocess.run([sys.executable, "parameter_codes.py", str(tmp_path / "rows.jsonl"),
-                           str(trained_run.run_dir), "--codes", "codes+sections"], cwd=ROOT / "experiments",
-                          env={**os.environ, "PROJECT_ROOT": str(ROOT)}, capture_output=True, text=True, timeout=600)
-    assert done.returncode != 0 and "already ends with the cross-section" in done.stderr
+@pytest.mark.parametrize("script, option, code, message", [
+    ("parameter_codes.py", "--codes", "codes+sections", "already ends with the cross-section"),
+    ("parameter_codes.py", "--codes", "codes+slices", "already ends with the mesh's slices"),
+    ("part_cv.py", "--variants", "slices", "already ends with the mesh's slices")])
+def test_scripts_refuse_to_add_sections_or_slices_where_the_code_already_ends_with_them(trained_run, tmp_path,
+                                                                                        script, option, code,
+                                                                                        message):
+    done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), str(trained_run.run_dir),
+                           option, code], cwd=ROOT / "experiments", env={**os.environ, "PROJECT_ROOT": str(ROOT)},
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode != 0 and message in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
 
 
@@ -656,11 +673,12 @@ def test_encoder_stage1_trains_another_encoder_on_exported_clouds_into_a_run_fol
     sys.path.insert(0, str(ROOT / "experiments"))
     from common import load_encoder
 
+    from pipe.data.slices import SLICE_SIZE
     from pipe.model.sections import SECTION_SIZE
     from pipe.pipeline import build_components
     encoder, head, _ = build_components(cfg)
     load_encoder(encoder, out)
-    assert encoder.latent_dim == 16 and head.latent_dim == 16 + SECTION_SIZE     # code.sections, as the run
+    assert encoder.latent_dim == 16 and head.latent_dim == 16 + SECTION_SIZE + SLICE_SIZE   # as the run's
 
 
 def test_contact_points_finds_the_points_on_a_plugs_contacts_alone():
@@ -700,41 +718,6 @@ def test_contact_points_summary_gives_points_per_contact_per_family_and_cloud_si
         "(0.00 to 0.30), none in 1"]
 
 
-def test_mesh_slices_count_a_shells_pins_apart_and_measure_their_outlines():
-    """A tube (radii 4 and 5, z 0 to 20) with two pins (radius 1, z 1 to 15) inside, as 16-gons: 0.5 mm up the
-    plane cuts the tube's ring alone, 2 and 5 mm up the ring and both pins, three regions; the lengths and areas
-    are the 16-gons' (perimeter 2 n r sin(pi / n), area n r^2 sin(2 pi / n) / 2). A mesh 8 mm long has no
-    section 10 mm up: no region, the floors."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import numpy as np
-    import trimesh
-    from mesh_slices import FLOOR, slice_descriptor
-
-    n = 16
-    tube = trimesh.creation.annulus(4.0, 5.0, 20.0, sections=n).apply_translation((0.0, 0.0, 10.0))
-    pins = [trimesh.creation.cylinder(1.0, 14.0, sections=n).apply_translation((x, 0.0, 8.0)) for x in (-2.0, 2.0)]
-    perimeter = {r: 2 * n * r * math.sin(math.pi / n) for r in (1.0, 4.0, 5.0)}
-    area = {r: n * r * r * math.sin(2 * math.pi / n) / 2 for r in (1.0, 4.0, 5.0)}
-    ring = (math.log(2), math.log(perimeter[5.0] + perimeter[4.0]), math.log(area[5.0] - area[4.0]))
-    ring_and_pins = (math.log(4), math.log(perimeter[5.0] + perimeter[4.0] + 2 * perimeter[1.0]),
-                     math.log(area[5.0] - area[4.0] + 2 * area[1.0]))
-    found = slice_descriptor(trimesh.util.concatenate([tube, *pins]), (0.5, 2.0, 5.0))
-    assert found == pytest.approx(np.array(ring + ring_and_pins + ring_and_pins), abs=1e-9)
-    short = trimesh.creation.cylinder(1.0, 8.0, sections=n)
-    assert slice_descriptor(short, (10.0,)) == pytest.approx([0.0, math.log(FLOOR), math.log(FLOOR)])
-
-
-def test_mesh_slices_are_standardised_by_the_training_rows_with_a_floored_spread():
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import torch
-    from mesh_slices import MIN_SPREAD, standardised
-
-    values = torch.tensor([[1.0, 2.0], [3.0, 2.0], [5.0, 7.0]], dtype=torch.float64)
-    # rows 0 and 1: mean (2, 2), spread (sqrt 2, 0 -> MIN_SPREAD)
-    expected = [-1 / math.sqrt(2), 0.0, 1 / math.sqrt(2), 0.0, 3 / math.sqrt(2), 5 / MIN_SPREAD]
-    assert standardised(values, [0, 1]).flatten().tolist() == pytest.approx(expected, rel=1e-6)
-
-
 def test_read_rows_skips_blank_lines_and_names_a_missing_file(tmp_path):
     sys.path.insert(0, str(ROOT / "experiments"))
     from summarise import read_rows
@@ -746,17 +729,8 @@ def test_read_rows_skips_blank_lines_and_names_a_missing_file(tmp_path):
         read_rows(tmp_path / "no/such.jsonl")
 
 
-def test_mesh_slices_read_every_real_mesh_and_a_pins_outline_is_its_circumference(real_meshes):
-    """Real CAD (STL in mm, OBJ in m, some not watertight) slices without error into finite numbers; a 5 mm
-    positioning pin and an 8 mm peg cut 2 mm from their end are one region of outline pi d (to 1 %)."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import numpy as np
-    from mesh_slices import slice_descriptor
-
-    from pipe.data.mesh import load_mesh
-
-    found = {path.name: slice_descriptor(load_mesh(path, "auto")) for path in real_meshes}
-    assert all(np.isfinite(values).all() for values in found.values())
-    for name, diameter in (("labit_positioning_pin_d5_20.stl", 5.0), ("factory_round_peg_8mm_tight.obj", 8.0)):
-        regions, length = math.expm1(found[name][3]), math.exp(found[name][4])      # the 2 mm slice
-        assert regions == pytest.approx(1.0) and length == pytest.approx(math.pi * diameter, rel=0.01)
+def test_mesh_slices_prints_a_d_subs_shell_and_pins_apart(tiny_data):
+    """dsub26 is dsub15's shell with 26 pins instead of 15: 2 mm up, 27 regions against 16."""
+    printed = run_script("mesh_slices.py", str(tiny_data), "dsub15", "dsub26").splitlines()
+    assert printed[0].startswith("part | 0.5 mm: regions, length, area | 2 mm:")
+    assert [row.split(" | ")[2].split(",")[0] for row in printed[1:]] == ["16", "27"]

@@ -3,6 +3,7 @@ refused by name when made with other settings or from another version of the dat
 
 from __future__ import annotations
 
+import json
 import shutil
 import time
 from dataclasses import replace
@@ -14,6 +15,7 @@ from conftest import TINY_DOMAIN, compose_config
 
 from pipe.cli import main as pipe_cli
 from pipe.data.prepared import MANIFEST, PreprocessSettings, prepare_domain, write_prepared
+from pipe.data.slices import SLICE_SIZE
 from pipe.errors import PipeError
 
 SETTINGS = PreprocessSettings(points=128, cloud_seed=0, rate_hz=50.0, steady_samples=1)
@@ -38,6 +40,8 @@ def assert_same_parts(computed, read):
             np.testing.assert_array_equal(a.cloud.points, b.cloud.points)
             np.testing.assert_array_equal(a.cloud.centre, b.cloud.centre)
             assert (a.cloud.centre_method, a.cloud.mesh) == (b.cloud.centre_method, b.cloud.mesh)
+            assert a.cloud.slices.shape == (SLICE_SIZE,) and np.isfinite(a.cloud.slices).all()
+            np.testing.assert_array_equal(a.cloud.slices, b.cloud.slices)
             assert len(a.profiles) == len(b.profiles) > 0
             for x, y in zip(a.profiles, b.profiles):
                 for field in ("time", "depth", "force", "force_clean"):
@@ -92,6 +96,17 @@ def test_a_stale_folder_is_refused_by_name(tiny_copy, tmp_path, change, message)
     with pytest.raises(PipeError, match=message) as error:
         prepare_domain(tiny_copy, data_cfg, domain_cfg, tmp_path / "prepared")
     assert MANIFEST in str(error.value) and "pipe data preprocess" in str(error.value)
+
+
+def test_a_folder_of_an_earlier_format_is_refused_by_name(tiny_copy, tmp_path):
+    """Format 1 had no mesh slices: such a folder is made again, never read with the slices missing."""
+    data_cfg, domain_cfg = configs()
+    write_prepared(tiny_copy, tmp_path / "prepared", SETTINGS)
+    manifest = tmp_path / "prepared" / MANIFEST
+    manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "format": 1}))
+    with pytest.raises(PipeError, match="was written in format 1 of prepared parts, this version of pipe reads "
+                                        "format 2; preprocess again: pipe data preprocess"):
+        prepare_domain(tiny_copy, data_cfg, domain_cfg, tmp_path / "prepared")
 
 
 def test_a_missing_folder_or_part_is_refused_and_a_failed_write_keeps_the_old_folder(tiny_copy, tmp_path,

@@ -190,3 +190,16 @@ def test_a_folder_trained_without_slices_is_evaluated_only_with_that_setting(tin
     with pytest.raises(PipeError, match=r"it was trained with code.sections=true and code.slices=true\)"):
         run_domain(smoke_config(tiny_data, tmp_path / "again", "mlflow.enabled=false", "code.sections=false",
                                 "code.slices=false", "phase=evaluate", f"resume={sliced}"))
+
+
+def test_a_model_pickled_before_the_slices_existed_loads_reading_none(tiny_data, tmp_path):
+    """An MLflow model registered before code.slices has no `slices` attribute; unpickled, it reads none."""
+    import pickle
+
+    cfg = smoke_config(tiny_data, tmp_path, "code.slices=false")
+    model = build_model(cfg, load_domain(cfg))
+    del model.__dict__["slices"]                                  # as the model was before the option
+    loaded = pickle.loads(pickle.dumps(model))
+    assert loaded.slices is None
+    sliced = pickle.loads(pickle.dumps(build_model(smoke_config(tiny_data, tmp_path), load_domain(cfg))))
+    assert isinstance(sliced.slices, SliceCode)

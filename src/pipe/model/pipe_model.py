@@ -41,6 +41,12 @@ class PIPEModel(nn.Module):
         self.slices = slices
         self.register_buffer("theta_scale", dynamics.parameter_scales(force_scale, depth_scale).float())
 
+    def __setstate__(self, state: dict) -> None:
+        """A model pickled before code.slices existed (an MLflow model registered earlier) reads no slices."""
+        super().__setstate__(state)
+        if "slices" not in self.__dict__ and "slices" not in self._modules:
+            self.slices = None
+
     def with_head(self, head: ParameterHead, theta_scale: torch.Tensor | None = None) -> PIPEModel:
         """The same encoder and dynamic model with another head (e.g. one identified per part), and the same
         parameter scales unless others are given."""
