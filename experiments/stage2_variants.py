@@ -55,7 +55,8 @@ import math
 import os
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 
@@ -98,6 +99,17 @@ class KeptAverage(EMAWeightAveraging):
         """The averaged module's state, named as the module's own."""
         return {name.removeprefix("module."): value for name, value in self._average_model.state_dict().items()
                 if name.startswith("module.")}
+
+
+@contextmanager
+def head_stage(stage: type[HeadStage]) -> Iterator[None]:
+    """train.py's `fit_head` trains `stage` in place of HeadStage inside, HeadStage again after: a script run in
+    another program's process (a test's) leaves pipe's training as it found it."""
+    original, fit_module.HeadStage = fit_module.HeadStage, stage
+    try:
+        yield
+    finally:
+        fit_module.HeadStage = original
 
 
 def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
@@ -281,11 +293,10 @@ def main() -> None:
             steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
             run_cfg = variant_config(cfg, variant)
             kept: dict = {}
-            fit_module.HeadStage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
-                                                 partial(pipe_fit, cfg, data, candidate, latents, index, "val"), kept,
-                                                 clouds)
+            stage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
+                                  partial(pipe_fit, cfg, data, candidate, latents, index, "val"), kept, clouds)
             start = time.perf_counter()
-            with tempfile.TemporaryDirectory() as tmp:
+            with head_stage(stage), tempfile.TemporaryDirectory() as tmp:
                 fit_module.fit_head(run_cfg, candidate, latents, index, train, val, Path(tmp), False, [])
                 if "last" in variant:
                     load_head_stage(candidate, Path(tmp) / "checkpoints/head/last.ckpt")
