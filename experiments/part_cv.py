@@ -146,6 +146,9 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
     if unscaled.slices is not None and any("slices" in variant for _, variant in variants):
         raise SystemExit(f"{run_dir}: its code already ends with the mesh's slices (code.slices): `default` reads "
                          "them there")
+    if unscaled.slices is not None and any("sections" in variant for _, variant in variants):
+        raise SystemExit(f"{run_dir}: sections=S weighs what follows the encoder's code, and this run's code ends "
+                         "with the mesh's slices too (code.slices): run it on a run trained with code.slices=false")
     clouds, slices = stack_clouds(pool + test), stack_slices(pool + test)
     latents, logvars = unscaled.latent_distribution(clouds, slices)
     targets = (profile_targets(cfg, unscaled, latents, index, pool, fits)

@@ -370,10 +370,10 @@ def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(uns
 @pytest.mark.parametrize("script, option, code, message", [
     ("parameter_codes.py", "--codes", "codes+sections", "already ends with the cross-section"),
     ("parameter_codes.py", "--codes", "codes+slices", "already ends with the mesh's slices"),
-    ("part_cv.py", "--variants", "slices", "already ends with the mesh's slices")])
-def test_scripts_refuse_to_add_sections_or_slices_where_the_code_already_ends_with_them(trained_run, tmp_path,
-                                                                                        script, option, code,
-                                                                                        message):
+    ("part_cv.py", "--variants", "slices", "already ends with the mesh's slices"),
+    ("part_cv.py", "--variants", "sections=0", "run it on a run trained with code.slices=false")])
+def test_scripts_refuse_sections_or_slices_variants_the_runs_code_does_not_fit(trained_run, tmp_path, script,
+                                                                                option, code, message):
     done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), str(trained_run.run_dir),
                            option, code], cwd=ROOT / "experiments", env={**os.environ, "PROJECT_ROOT": str(ROOT)},
                           capture_output=True, text=True, timeout=600)
