@@ -1,9 +1,9 @@
 """Prediction in process with the model already loaded: for one mesh the time of each step (sample the
 mesh, encode, Theta(p_z) and the force along the default ramp) and of `predict_with` as a whole; for a
 folder of meshes (--library) the throughput of one call per mesh against one batched call over all of them,
-side by side. Median of --repeats. The model is built from the default config (untrained weights cost the
-same time as trained ones); the command's whole wall time, start-up included, is measured with
-`time python predict.py ...`.
+side by side, and what sampling and slicing the meshes take of it. Median of --repeats. The model is built
+from the default config (untrained weights cost the same time as trained ones); the command's whole wall
+time, start-up included, is measured with `time python predict.py ...`.
 
     python benchmarks/predict.py [--mesh ../shared/real-meshes/labit_positioning_pin_d5_20.stl] [--repeats 5]
     python benchmarks/predict.py --library ../shared/real-meshes [--repeats 3]
@@ -19,11 +19,14 @@ import torch
 from hydra import compose, initialize_config_module
 from timing import median_seconds
 
+from pipe.data.mesh import load_mesh, orient
+from pipe.data.slices import slice_descriptor
 from pipe.model.card import ModelCard
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SectionCode
+from pipe.model.slices import SliceCode
 from pipe.model.uncertainty import force_band, theta_band
-from pipe.pipeline import build_components, uses_sections
+from pipe.pipeline import build_components, uses_sections, uses_slices
 from pipe.predict import mesh_files, predict_with, sample_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +44,9 @@ def main() -> None:
         cfg = compose("predict", overrides=[f"mesh={args.mesh}", "run=unused"])
     encoder, head, dynamics = build_components(train_cfg)
     sections = SectionCode() if uses_sections(train_cfg) else None    # unstandardised: no training parts here
-    model = PIPEModel(encoder, head, dynamics, force_scale=10.0, depth_scale=5.0, sections=sections).eval()
+    slices = SliceCode() if uses_slices(train_cfg) else None
+    model = PIPEModel(encoder, head, dynamics, force_scale=10.0, depth_scale=5.0, sections=sections,
+                      slices=slices).eval()
     card = ModelCard(domain="benchmark", points=int(train_cfg.data.points), cloud_seed=0,
                      rate_hz=float(train_cfg.data.rate_hz), parameter_names=tuple(dynamics.parameter_names),
                      train_parts=("none",), train_size_mm=(1.0, 100.0), depth_scale_mm=5.0, force_scale_n=10.0)
@@ -78,12 +83,15 @@ def library(model: PIPEModel, card: ModelCard, cfg, meshes: list[Path], repeats:
         one_by_one = median_seconds(lambda: [predict_with(model, card, cfg, [m]) for m in meshes], repeats)
         batched = median_seconds(lambda: predict_with(model, card, cfg, meshes), repeats)
         sampling = median_seconds(lambda: [sample_mesh(m, cfg, card) for m in meshes], repeats)
+        loaded = [orient(load_mesh(m, cfg.units), str(cfg.axis), m) for m in meshes]
+        slicing = median_seconds(lambda: [slice_descriptor(mesh) for mesh in loaded], repeats)
     print(f"{len(meshes)} meshes, {card.points} points each, median of {repeats}")
     print("| predict_with | time | meshes per second | ratio |")
     print("| --- | --- | --- | --- |")
     print(f"| once per mesh | {one_by_one:.2f} s | {len(meshes) / one_by_one:.1f} | 1.00x |")
     print(f"| one batch | {batched:.2f} s | {len(meshes) / batched:.1f} | {one_by_one / batched:.2f}x |")
     print(f"| (sampling the meshes alone) | {sampling:.2f} s | {len(meshes) / sampling:.1f} | |")
+    print(f"| (of which their slices, the meshes loaded) | {slicing:.2f} s | {len(meshes) / slicing:.1f} | |")
 
 
 if __name__ == "__main__":
