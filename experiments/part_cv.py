@@ -38,7 +38,7 @@ from common import append_row, kept_folder, load_encoder, load_run
 from common import fits as method_fits
 from omegaconf import DictConfig
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
-from stage2_variants import clipped, head_stage, parse_variant, variant_config, variant_head, variant_stage
+from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
 from summarise import domain_of, read_rows, spread
 
 from pipe.data.batches import stack_clouds, stack_slices
@@ -191,8 +191,8 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
             stage = variant_stage(variant, read_spread, read_logvars, run_cfg.stages.head.epochs, steps,
                                   lambda: math.nan, {}, clouds)
             start = time.perf_counter()
-            with head_stage(stage), tempfile.TemporaryDirectory() as tmp:
-                fit_module.fit_head(run_cfg, model, read, index, train, [], Path(tmp), False, [])
+            with tempfile.TemporaryDirectory() as tmp:
+                fit_module.fit_head(run_cfg, model, read, index, train, [], Path(tmp), False, [], stage)
             with torch.no_grad():
                 codes = model.latent_distribution(clouds, slices)[0] if {"encoder", "mu"} & set(variant) else read
             if "clip" in variant:

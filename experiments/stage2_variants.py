@@ -55,8 +55,7 @@ import math
 import os
 import tempfile
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -72,7 +71,7 @@ from pipe.data.slices import SLICE_SIZE
 from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import FORCE_LOSSES
 from pipe.pipeline import build_components, build_model, build_plugin
-from pipe.training import fit as fit_module
+from pipe.training.fit import fit_head
 from pipe.training.stages import HeadStage, check_finite
 
 
@@ -99,17 +98,6 @@ class KeptAverage(EMAWeightAveraging):
         """The averaged module's state, named as the module's own."""
         return {name.removeprefix("module."): value for name, value in self._average_model.state_dict().items()
                 if name.startswith("module.")}
-
-
-@contextmanager
-def head_stage(stage: type[HeadStage]) -> Iterator[None]:
-    """train.py's `fit_head` trains `stage` in place of HeadStage inside, HeadStage again after: a script run in
-    another program's process (a test's) leaves pipe's training as it found it."""
-    original, fit_module.HeadStage = fit_module.HeadStage, stage
-    try:
-        yield
-    finally:
-        fit_module.HeadStage = original
 
 
 def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars: torch.Tensor, epochs: int,
@@ -296,8 +284,8 @@ def main() -> None:
             stage = variant_stage(variant, spread, logvars, run_cfg.stages.head.epochs, steps,
                                   partial(pipe_fit, cfg, data, candidate, latents, index, "val"), kept, clouds)
             start = time.perf_counter()
-            with head_stage(stage), tempfile.TemporaryDirectory() as tmp:
-                fit_module.fit_head(run_cfg, candidate, latents, index, train, val, Path(tmp), False, [])
+            with tempfile.TemporaryDirectory() as tmp:
+                fit_head(run_cfg, candidate, latents, index, train, val, Path(tmp), False, [], stage)
                 if "last" in variant:
                     load_head_stage(candidate, Path(tmp) / "checkpoints/head/last.ckpt")
             if "select" in variant:

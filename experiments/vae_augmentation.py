@@ -35,7 +35,7 @@ from pipe.data.prepared import PartData
 from pipe.data.preprocess import cloud_from_mesh
 from pipe.data.spec import load_spec
 from pipe.pipeline import build_model
-from pipe.training import fit as fit_module
+from pipe.training.fit import fit_head, fit_vae
 from pipe.training.stages import VAEStage
 
 
@@ -115,7 +115,6 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", help="finished seed folders of train.py")
     ap.add_argument("--variants", default="none,rotate")
     args = ap.parse_args()
-    original = fit_module.VAEStage
     for run in args.runs:
         for variant in args.variants.split(","):
             rotate, scale, extra = parse(variant)
@@ -124,15 +123,12 @@ def main() -> None:
             train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
             model = build_model(cfg, data, (encoder, head, dynamics))
             draws = redrawn_clouds(data.dataset_dir, train, cfg.data.cloud_seed, extra) if extra else None
-            fit_module.VAEStage = augmented_stage(rotate, scale, draws, cfg.seed)
-            try:
-                with tempfile.TemporaryDirectory() as tmp:
-                    vae_s = fit_module.fit_vae(cfg, encoder, train, val, Path(tmp), False, [])
-                    index = {p.name: i for i, p in enumerate(train + val + test)}
-                    latents = model.latent(*stack_geometry(train + val + test))
-                    head_s = fit_module.fit_head(cfg, model, latents, index, train, val, Path(tmp), False, [])
-            finally:
-                fit_module.VAEStage = original
+            stage = augmented_stage(rotate, scale, draws, cfg.seed)
+            with tempfile.TemporaryDirectory() as tmp:
+                vae_s = fit_vae(cfg, encoder, train, val, Path(tmp), False, [], stage)
+                index = {p.name: i for i, p in enumerate(train + val + test)}
+                latents = model.latent(*stack_geometry(train + val + test))
+                head_s = fit_head(cfg, model, latents, index, train, val, Path(tmp), False, [])
             score(args.out, {"run": str(run_dir), "variant": f"augment:{variant}", "seconds": [vae_s, head_s]},
                   cfg, data, model, latents, index)
 

@@ -509,10 +509,6 @@ def test_stage1_per_fold_trains_the_force_weighted_encoder_without_the_held_out_
     assert sorted(sorted(train) for train, _ in fitted) == sorted(
         sorted({"dsub9", "dsub15", "vga"} - {held}) for held in control)
     assert all(not torch.allclose(control[name], codes) for name, codes in again)
-    # the folds trained their own stage in place of pipe's HeadStage and put it back (a DDP test in the same
-    # process once failed to pickle the variant's local class)
-    from pipe.training.stages import HeadStage
-    assert part_cv.fit_module.HeadStage is HeadStage
 
 
 def test_domain_of_reads_a_candidates_folder_as_its_runs():

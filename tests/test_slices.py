@@ -16,7 +16,7 @@ from pipe.data.batches import stack_geometry, stack_slices
 from pipe.data.mesh import load_mesh, orient
 from pipe.data.preprocess import cloud_from_mesh
 from pipe.data.slices import FLOOR, SLICE_DEPTHS_MM, SLICE_SIZE, slice_descriptor
-from pipe.errors import PipeError
+from pipe.errors import DatasetError, PipeError
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.methods import METHODS, code_blocks, code_inputs
 from pipe.model.sections import SECTION_SIZE
@@ -69,6 +69,26 @@ def test_the_cloud_carries_the_slices_of_the_mesh_turned_onto_its_insertion_axis
     expected = slice_descriptor(orient(load_mesh(path, "mm"), "x", path))
     np.testing.assert_array_equal(cloud.slices, expected)
     assert math.expm1(cloud.slices[3]) == pytest.approx(3.0)                      # the ring and both pins
+
+
+def test_a_mesh_that_cannot_be_sliced_is_a_dataset_error_naming_its_file(tmp_path, monkeypatch, capsys):
+    """trimesh's section failing on broken geometry (simulated: no mesh at hand makes it fail) is the user's
+    error: the file and trimesh's reason, exit 2 from the CLI, no traceback."""
+    from pipe.cli import main
+
+    path = tmp_path / "broken.stl"
+    tube_with_two_pins().export(path)
+
+    def fail(*args, **kwargs):
+        raise IndexError("index 3 is out of bounds for axis 0 with size 3")
+
+    monkeypatch.setattr(trimesh.Trimesh, "section", fail)
+    with pytest.raises(DatasetError, match="cannot be sliced near its mating end .IndexError: index 3") as error:
+        cloud_from_mesh(path, "mm", 64)
+    assert error.value.path == path
+    assert main(["data", "pointcloud", str(path)]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"{path}: the mesh cannot be sliced" in err and "Traceback" not in err
 
 
 def test_the_training_parts_slices_are_standardised_with_a_floored_spread():

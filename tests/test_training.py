@@ -216,6 +216,36 @@ def test_stage_one_trains_an_encoder_that_a_stage_two_froze():
     assert all(p.requires_grad and p.grad is not None for p in encoder.parameters())
 
 
+def test_each_stage_trains_the_module_class_it_is_given(tiny_data, tmp_path):
+    """An experiment's variant of a stage (experiments/stage2_variants.py, vae_augmentation.py) is passed to
+    fit_vae and fit_head, not swapped into pipe's module: each variant takes every training step of its stage
+    (2 epochs of 2 batches, the tiny domain's 2 training parts x 10 trials in batches of 10, 1 cloud batch)."""
+    from pipe.pipeline import build_model, latent_codes, load_domain
+    from pipe.training.fit import fit_head, fit_vae
+    from pipe.training.stages import HeadStage, VAEStage
+
+    steps = {"vae": 0, "head": 0}
+
+    class CountedVAE(VAEStage):
+        def training_step(self, batch, batch_idx):
+            steps["vae"] += 1
+            return super().training_step(batch, batch_idx)
+
+    class CountedHead(HeadStage):
+        def training_step(self, batch, batch_idx):
+            steps["head"] += 1
+            return super().training_step(batch, batch_idx)
+
+    cfg = smoke_config(tiny_data, tmp_path, "mlflow.enabled=false")
+    data = load_domain(cfg)
+    model = build_model(cfg, data)
+    train, val = data.splits["train"], data.splits["val"]
+    fit_vae(cfg, model.encoder, train, val, tmp_path, False, [], CountedVAE)
+    latents, _, index = latent_codes(model, data)
+    fit_head(cfg, model, latents, index, train, val, tmp_path, False, [], CountedHead)
+    assert steps == {"vae": 2, "head": 4}
+
+
 def test_an_unknown_head_loss_is_refused_before_stage_one(tiny_data, tmp_path):
     result = run_train("experiment=smoke", "stages.head.loss=mae", f"data.dir={tiny_data}",
                        f"hydra.run.dir={tmp_path}", *TINY_DOMAIN)

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipe.data.dataset import Trial
+from pipe.errors import DatasetError
 
 # open3d and trimesh are imported where meshes are handled: they take about 1.5 s to import, and the modules
 # that only use profiles (a worker process fitting models, predict.py before it reads a mesh) need neither
@@ -99,7 +100,12 @@ def cloud_from_mesh(path: str | Path, units: str = "mm", points: int = 1024, see
     mesh = orient(load_mesh(path, units), axis, path)
     cloud = sample_point_cloud(mesh, points, seed=seed)
     info = MeshInfo(mesh.metadata["file_units"], float(mesh.extents.max()), bool(mesh.is_watertight))
-    return replace(cloud, mesh=info, slices=slice_descriptor(mesh))
+    try:
+        slices = slice_descriptor(mesh)
+    except Exception as exc:  # trimesh's section and shapely raise many types on broken geometry
+        raise DatasetError(f"the mesh cannot be sliced near its mating end ({type(exc).__name__}: {exc}); "
+                           "repair it in a CAD tool or export it again", path) from None
+    return replace(cloud, mesh=info, slices=slices)
 
 
 def resample(trial: Trial, rate_hz: float) -> Profile:

@@ -112,15 +112,16 @@ def logged_minimum(run_dir: Path, stage: str, column: str) -> float | None:
 
 
 def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val: list[PartData], run_dir: Path,
-            resume: bool, loggers: list[Logger]) -> StageFit:
+            resume: bool, loggers: list[Logger], stage_class: type[VAEStage] = VAEStage) -> StageFit:
     """Stage 1 (`cfg.stages.vae`): the encoder learns to reconstruct the training clouds (and, with
-    `force_weight` > 0, to predict their parts' force signatures)."""
+    `force_weight` > 0, to predict their parts' force signatures), trained by `stage_class` (an experiment's
+    variant of VAEStage, e.g. with augmentation)."""
     stage = cfg.stages.vae
     (force_weight,), bins = force_setting(cfg)    # a run trains its candidate weights one at a time
     signatures = force_signatures(train, val, bins) if force_weight > 0 else None
     trainer = make_trainer(cfg.trainer, run_dir, "vae", stage.epochs, bool(val), loggers, resume)
-    module = VAEStage(encoder, lr=stage.lr, kl_weight=stage.kl_weight, feature_dtype=stage.feature_dtype,
-                      force_weight=force_weight, signatures=signatures)
+    module = stage_class(encoder, lr=stage.lr, kl_weight=stage.kl_weight, feature_dtype=stage.feature_dtype,
+                         force_weight=force_weight, signatures=signatures)
     batch = per_process_batch(stage.batch_size, trainer)
     return fit_stage(trainer, module, cloud_loader(train, batch, True, cfg.seed),
                      cloud_loader(val, batch, False, cfg.seed) if val else None, run_dir, "vae", resume)
@@ -151,12 +152,14 @@ def check_varying_force(parts: list[PartData]) -> None:
 
 
 def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: dict[str, int], train: list[PartData],
-             val: list[PartData], run_dir: Path, resume: bool, loggers: list[Logger]) -> StageFit:
+             val: list[PartData], run_dir: Path, resume: bool, loggers: list[Logger],
+             stage_class: type[HeadStage] = HeadStage) -> StageFit:
     """Stage 2 (`cfg.stages.head`): the encoder frozen, the head learns the training trials' force through
-    the dynamic model; `latents` holds the parts' codes at the rows `index` gives."""
+    the dynamic model, trained by `stage_class` (an experiment's variant of HeadStage); `latents` holds the
+    parts' codes at the rows `index` gives."""
     stage = cfg.stages.head
     trainer = make_trainer(cfg.trainer, run_dir, "head", stage.epochs, bool(val), loggers, resume)
     batch = per_process_batch(stage.batch_size, trainer)
-    return fit_stage(trainer, HeadStage(model, latents, lr=stage.lr, loss=head_loss(cfg)),
+    return fit_stage(trainer, stage_class(model, latents, lr=stage.lr, loss=head_loss(cfg)),
                      trial_loader(train, index, batch, True, cfg.seed),
                      trial_loader(val, index, batch, False, cfg.seed) if val else None, run_dir, "head", resume)
