@@ -20,7 +20,7 @@ from pipe.evaluation import identification
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.evaluation.identification import identify, start_head
-from pipe.evaluation.methods import METHODS, code_inputs, validation_nmse
+from pipe.evaluation.methods import METHODS, code_inputs, one_standard_error_choice, validation_errors, validation_nmse
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SECTION_SIZE, SectionCode
 from pipe.pipeline import build_components
@@ -400,21 +400,65 @@ def test_code_inputs_split_the_code_where_the_cross_section_begins(ctx):
     assert code_inputs(context) == {"code+sections": slice(None), "code": slice(0, 32), "sections": slice(32, None)}
 
 
-@pytest.mark.parametrize("name", ["nearest", "gpr", "blackbox"])
-def test_baselines_read_the_input_of_their_lowest_validation_error(with_sections, name):
-    """Fitted on each input alone (the reference), then left to choose: it reads the one of the lowest
-    validation error, and says so in its diagnostics."""
+def test_one_standard_error_choice_keeps_the_first_unless_another_is_clearly_better():
+    """By hand, against [0.4, 0.5, 0.6] (mean 0.5): [0.2, 0.3, 0.4] is better on every trial (difference 0.2,
+    standard error 0); [0.1, 0.6, 0.5] has a lower mean, 0.4, but its differences 0.3, -0.1, 0.1 have mean 0.1
+    and standard error 0.2 / sqrt(3) = 0.115; [0.3, 0.45, 0.5] (mean 0.417; differences 0.1, 0.05, 0.1: mean
+    0.083, standard error 0.017) is clearly better, so it is kept before the lower but unclear 0.4."""
+    default = np.array([0.4, 0.5, 0.6])
+    clear, unclear = np.array([0.3, 0.45, 0.5]), np.array([0.1, 0.6, 0.5])
+    assert one_standard_error_choice([default, np.array([0.2, 0.3, 0.4])]) == 1
+    assert one_standard_error_choice([default, unclear]) == 0
+    assert one_standard_error_choice([default, unclear, clear]) == 2
+    assert one_standard_error_choice([default, clear, np.array([0.2, 0.3, 0.4])]) == 2   # both clear: the lower
+    assert one_standard_error_choice([default, default + 0.1]) == 0
+    assert one_standard_error_choice([default]) == 0
+    assert one_standard_error_choice([np.array([0.5]), np.array([0.1])]) == 0    # one trial: no error to judge by
+
+
+def test_a_lower_but_unclear_validation_error_leaves_the_head_s_input(with_sections, monkeypatch):
+    """The code alone has the lowest mean validation error (0.4 against 0.5), but not by more than its
+    standard error (the hand-computed case above), so nearest keeps reading what the head reads; the plain
+    minimum would take the code."""
+    from pipe.evaluation import methods
+
     context, test = with_sections
-    scores = {}
+    errors = {"code+sections": [0.4, 0.5, 0.6], "code": [0.1, 0.6, 0.5], "sections": [0.5, 0.6, 0.7]}
+    monkeypatch.setattr(methods, "validation_errors", lambda method, ctx: np.array(errors[method.inputs]))
+    nearest = METHODS["nearest"]()
+    nearest.fit(context)
+    assert nearest.inputs == "code+sections"
+    errors["code"] = [0.3, 0.45, 0.5]                            # clearly better now
+    nearest.fit(context)
+    assert nearest.inputs == "code"
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.3])
+@pytest.mark.parametrize("name", ["nearest", "gpr", "blackbox"])
+def test_baselines_read_what_the_head_reads_unless_another_input_is_clearly_better(with_sections, name, noise):
+    """Fitted on each input alone (the reference), then left to choose: of the inputs that beat the head's
+    input (the first) by more than the paired differences' standard error over the validation trials, it
+    reads the one of the lowest mean error, else the head's input, and says so in its diagnostics. With noise the
+    validation part's trials differ, so the standard error is not zero."""
+    context, test = with_sections
+    context.val = [part("v", 2.5, trials=4, noise=noise)]
+    errors = {}
     for inputs in code_inputs(context):
         alone = METHODS[name]()
         alone.inputs = inputs
         alone.fit_inputs(context)
-        scores[inputs] = validation_nmse(alone, context)
+        errors[inputs] = validation_errors(alone, context)
+    first = "code+sections"
+
+    def clearly_better(inputs: str) -> bool:
+        difference = errors[first] - errors[inputs]
+        return difference.mean() > difference.std(ddof=1) / math.sqrt(len(difference))
+
+    better = [inputs for inputs in errors if inputs != first and clearly_better(inputs)]
     chosen = METHODS[name]()
     chosen.fit(context)
-    assert chosen.inputs == min(scores, key=scores.get)
-    assert validation_nmse(chosen, context) == pytest.approx(scores[chosen.inputs])
+    assert chosen.inputs == (min(better, key=lambda inputs: errors[inputs].mean()) if better else first)
+    assert validation_nmse(chosen, context) == pytest.approx(errors[chosen.inputs].mean())
     diagnostics = chosen.diagnostics(context, test)
     assert diagnostics[f"{name}_reads_code"] == float(chosen.inputs != "sections")
     assert diagnostics[f"{name}_reads_sections"] == float(chosen.inputs != "code")

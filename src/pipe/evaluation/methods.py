@@ -12,9 +12,9 @@
 - blackbox: a neural network from latent code and depth to force, without the physical model.
 - mean:     the mean training force over depth.
 
-nearest, gpr and the blackbox read the part's code through the input of their lowest validation error
-(`CodeBaseline`): with code.sections or code.slices on, the encoder's code, the cloud's cross-section and the
-mesh's slices together (what PIPE's head reads), or any other combination of them.
+nearest, gpr and the blackbox read the part's code through the input PIPE's head reads (with code.sections or
+code.slices on, the encoder's code, the cloud's cross-section and the mesh's slices together), or through any
+other combination of them that has a clearly lower validation error (`CodeBaseline`).
 """
 
 from __future__ import annotations
@@ -91,12 +91,31 @@ METHODS: Registry[type[Method]] = Registry("method")
 
 
 @torch.no_grad()
+def validation_errors(method: Method, ctx: EvalContext) -> np.ndarray:
+    """The method's NMSE of the force (1 - FIT/100) on each of the validation parts' trials, in order."""
+    return np.array([np.sum((p.force - f) ** 2) / np.sum((p.force - p.force.mean()) ** 2)
+                     for part in ctx.val for p, f in zip(part.profiles, method.predict(ctx, part))])
+
+
 def validation_nmse(method: Method, ctx: EvalContext) -> float:
-    """The method's mean NMSE of the force (1 - FIT/100) over the validation parts' trials: what the
-    baselines choose their hyperparameters and stopping point by (never the test parts)."""
-    scores = [np.sum((p.force - f) ** 2) / np.sum((p.force - p.force.mean()) ** 2)
-              for part in ctx.val for p, f in zip(part.profiles, method.predict(ctx, part))]
-    return float(np.mean(scores))
+    """The method's mean NMSE of the force over the validation parts' trials: what the baselines choose
+    their hyperparameters and stopping point by (never the test parts)."""
+    return float(np.mean(validation_errors(method, ctx)))
+
+
+def one_standard_error_choice(errors: list[np.ndarray]) -> int:
+    """Which of the candidates to keep, given each one's errors on the same validation trials: the first (the
+    default) unless others beat it by more than one standard error of their paired difference (after the
+    one-standard-error rule of Hastie et al., The Elements of Statistical Learning, 7.10); then the one of
+    the lowest mean error among those. Choosing the plain minimum among many candidates on one or two
+    validation parts keeps whichever the noise favoured. The trials of a part are not independent, so this
+    standard error understates the spread between parts: the rule is the least guard, not a test."""
+    def clearly_better(candidate: np.ndarray) -> bool:
+        difference = errors[0] - candidate
+        return len(difference) > 1 and difference.mean() > difference.std(ddof=1) / np.sqrt(len(difference))
+
+    better = [i for i in range(1, len(errors)) if clearly_better(errors[i])]
+    return min(better, key=lambda i: errors[i].mean()) if better else 0
 
 
 def code_blocks(ctx: EvalContext) -> dict[str, range]:
@@ -129,8 +148,9 @@ def code_inputs(ctx: EvalContext) -> dict[str, slice | torch.Tensor]:
 
 class CodeBaseline(Method):
     """A baseline that reads the parts' latent codes. `fit` fits one candidate on each of `code_inputs` and
-    keeps the one of the lowest validation error (`validation_nmse`; without validation parts, the first), so
-    that an input which helps PIPE's head but misleads the baseline does not handicap it."""
+    keeps what PIPE's head reads (the first) unless another input has a lower validation error by more than
+    its standard error (`one_standard_error_choice`; without validation parts, the first), so that an input
+    which helps PIPE's head but misleads the baseline does not handicap it."""
 
     inputs = "code"     # the chosen one of `code_inputs`
 
@@ -152,10 +172,10 @@ class CodeBaseline(Method):
             candidates.append(candidate)
         chosen = candidates[0]
         if len(candidates) > 1:
-            scores = [validation_nmse(c, ctx) for c in candidates]
-            chosen = candidates[int(np.argmin(scores))]
+            errors = [validation_errors(c, ctx) for c in candidates]
+            chosen = candidates[one_standard_error_choice(errors)]
             log.info("%s reads %s (validation NMSE: %s)", self.name, chosen.inputs,
-                     ", ".join(f"{name} {score:.4f}" for name, score in zip(names, scores)))
+                     ", ".join(f"{name} {e.mean():.4f}" for name, e in zip(names, errors)))
         self.__dict__.update(chosen.__dict__)
 
     def diagnostics(self, ctx, part):
