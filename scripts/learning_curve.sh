@@ -15,11 +15,11 @@
 # The committed curve (README, docs/learning_curve/) is measured with train.py's defaults of 2026-11-27 (stage 2
 # and the evaluation; its stage-1 encoders are those of the curve before it), before the mesh's slices became
 # the default: add code.slices=false to come back to it (its baselines chose their input by the plain minimum,
-# before the one-standard-error rule). With the slices 5 and 100 parts were run for both families, 10 for pins
+# before the one-standard-error rule). With the slices 5, 10 and 100 parts were run, for both families
 # (docs/learning_curve/slices/: SIZES=100 bash scripts/learning_curve.sh runs/curve_slices threads=2, then
 # evaluated again with the baselines' one-standard-error rule: EVALUATE_FROM=runs/curve_slices SIZES=100 into
-# runs/curve_1se, with runs/curve_slices/identification_fits copied there first; then SIZES="5 10" for pins and
-# SIZES=5 for rect into runs/curve_1se).
+# runs/curve_1se, with runs/curve_slices/identification_fits copied there first; then SIZES="5 10" into
+# runs/curve_1se, one family after the other).
 # The curves before come back with
 # code.sections=false (docs/learning_curve/no_sections/), code.sections=false stages.vae.force_weight=0
 # (docs/learning_curve/force_weight_0/) and code.sections=false stages.head.loss=mse head.hidden=128
