@@ -11,15 +11,15 @@
 # Extra arguments are Hydra overrides for every run.
 # EVALUATE_FROM=<folder of a finished curve> evaluates that curve's trained models again (phase=evaluate,
 # their checkpoints only read) into OUT instead of training: after a change of the evaluation alone (e.g.
-# the identification engine), the same results as a whole new curve in a fraction of its time.
+# the identification engine), the same results as a whole new curve in a fraction of its time. Its identified
+# fits (named by their inputs' hash, so never stale) are copied into OUT first, so no oracle is fitted again.
 # The committed curve (README, docs/learning_curve/) is measured with train.py's defaults of 2026-11-27 (stage 2
 # and the evaluation; its stage-1 encoders are those of the curve before it), before the mesh's slices became
 # the default: add code.slices=false to come back to it (its baselines chose their input by the plain minimum,
 # before the one-standard-error rule). With the slices 5, 10 and 100 parts were run, for both families
 # (docs/learning_curve/slices/: SIZES=100 bash scripts/learning_curve.sh runs/curve_slices threads=2, then
 # evaluated again with the baselines' one-standard-error rule: EVALUATE_FROM=runs/curve_slices SIZES=100 into
-# runs/curve_1se, with runs/curve_slices/identification_fits copied there first; then SIZES="5 10" into
-# runs/curve_1se, one family after the other).
+# runs/curve_1se; then SIZES="5 10" into runs/curve_1se, one family after the other).
 # The curves before come back with
 # code.sections=false (docs/learning_curve/no_sections/), code.sections=false stages.vae.force_weight=0
 # (docs/learning_curve/force_weight_0/) and code.sections=false stages.head.loss=mse head.hidden=128
@@ -31,6 +31,16 @@ out=${1:?give an output folder, e.g. runs/curve}
 shift
 mkdir -p "$out"
 fits="$(realpath "$out")/identification_fits"
+if [ -n "${EVALUATE_FROM:-}" ]; then
+    if [ "$(realpath "$EVALUATE_FROM")" = "$(realpath "$out")" ]; then
+        echo "EVALUATE_FROM must name another folder than OUT ($out): its runs are read, OUT's replaced" >&2
+        exit 2
+    fi
+    if [ -d "$EVALUATE_FROM/identification_fits" ]; then
+        mkdir -p "$fits"
+        cp -r "$EVALUATE_FROM/identification_fits/." "$fits/"
+    fi
+fi
 read -ra families <<< "${FAMILIES:-pins rect}"
 read -ra sizes <<< "${SIZES:-5 10 20 50 100}"
 for family in "${families[@]}"; do
