@@ -487,6 +487,27 @@ def test_without_validation_parts_the_baselines_read_what_the_head_reads(with_se
         assert method.inputs == "code+sections"
 
 
+def test_baselines_keep_the_model_s_standardisation_of_the_cross_section(with_sections):
+    """The model standardised the cross-section over the training parts, with a floor on a column's spread. A
+    column the training parts do not vary (0 in a and b) but the test part does (8) reaches the blackbox and
+    gpr as 8, not as 8 / 1e-6, which sent the blackbox's force far beyond the training forces; they standardise
+    the encoder's code alone (0 and 1 in a and b, 0.45 in the test part)."""
+    context, test = with_sections
+    context.latents[:, 32] = torch.tensor([0.0, 0.0, 8.0, 0.0])
+    sections = [8.0] + [0.3] * (SECTION_SIZE - 1)
+    blackbox = METHODS["blackbox"]()
+    blackbox.inputs = "code+sections"
+    blackbox.fit_inputs(context)
+    read = blackbox._inputs(context, test, np.array([3.0]))[0, :-1].numpy()
+    np.testing.assert_allclose(read, [-0.05 / math.sqrt(0.5)] * 32 + sections, rtol=1e-4)   # std with ddof 1
+    assert np.abs(blackbox.predict(context, test)[0]).max() < 1e3       # the training forces reach 18 N
+    gpr = METHODS["gpr"]()
+    gpr.inputs = "code+sections"
+    gpr.fit_inputs(context)
+    read = (gpr.code(context, test).numpy() - gpr.mean) / gpr.std
+    np.testing.assert_allclose(read, [-0.1] * 32 + sections, rtol=1e-4)                      # numpy's std, ddof 0
+
+
 def test_mean_is_the_average_training_force_over_depth(ctx):
     context, test = ctx
     mean = METHODS["mean"]()

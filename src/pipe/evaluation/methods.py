@@ -162,6 +162,16 @@ class CodeBaseline(Method):
         """The part of the part's latent code that the baseline reads."""
         return ctx.latent(part)[code_inputs(ctx)[self.inputs]]
 
+    def standardised_already(self, ctx: EvalContext) -> torch.Tensor:
+        """(columns read,) bool: True where the column is the cross-section's or the slices', which the model
+        standardised over the same training parts with a floor on their spread (pipe.model.standardiser). A
+        baseline keeps those as they are: standardising them again would undo the floor, and a column that the
+        training parts do not vary (a rect family's pin count at 10 mm over 5 training parts) would grow
+        a million times on a part that differs there."""
+        columns = torch.arange(ctx.latents.shape[1])[code_inputs(ctx)[self.inputs]]
+        encoder = code_blocks(ctx).get("code", range(0))
+        return (columns < encoder.start) | (columns >= encoder.stop)
+
     def fit(self, ctx):
         names = list(code_inputs(ctx)) if ctx.val else list(code_inputs(ctx))[:1]
         candidates = []
@@ -295,7 +305,9 @@ class GPR(CodeBaseline):
     Each training part is identified from scratch like the oracle, but from the neutral start only: the
     regression needs profiles that are comparable across parts, and the best of random starts lands
     different parts in different local minima. The kernel's length scale is chosen on the validation parts
-    (`validation_nmse`) among the marginal-likelihood optimum and a fixed grid."""
+    (`validation_nmse`) among the marginal-likelihood optimum and a fixed grid. It standardises the encoder's
+    code by the training parts' mean and std, and reads the rest as the model standardised it
+    (`standardised_already`)."""
 
     name = "gpr"
     grid = np.linspace(0.0, 1.0, 21)
@@ -314,6 +326,8 @@ class GPR(CodeBaseline):
             targets.append(np.log(theta[0].numpy()).T.ravel())
         x = np.stack(rows)
         self.mean, self.std = x.mean(0), x.std(0) + 1e-9
+        kept = self.standardised_already(ctx).numpy()
+        self.mean[kept], self.std[kept] = 0.0, 1.0
         self.num_parameters = len(ctx.model.dynamics.parameter_names)
         kernels = self.kernels(x.shape[1])
         if not ctx.val:             # nothing to choose by: the marginal-likelihood optimum alone
@@ -365,8 +379,9 @@ class GPR(CodeBaseline):
 @METHODS.register
 class BlackBox(CodeBaseline):
     """An MLP f(z, p_z) -> F trained on every sample of the training trials (MSE); no dynamics, no physics.
-    Its inputs are standardised (codes by the training parts' mean and std, depth and force by their
-    scales), and it keeps the weights of its lowest validation error, checked every `CHECK_EVERY` steps."""
+    Its inputs are standardised (the encoder's code by the training parts' mean and std, the rest as the model
+    standardised it, `standardised_already`; depth and force by their scales), and it keeps the weights of its
+    lowest validation error, checked every `CHECK_EVERY` steps."""
 
     name = "blackbox"
     CHECK_EVERY = 100
@@ -376,6 +391,8 @@ class BlackBox(CodeBaseline):
         self.scales = (force_scale, depth_scale)
         codes = torch.stack([self.code(ctx, part) for part in ctx.train])
         self.code_mean, self.code_std = codes.mean(0), codes.std(0) + 1e-6
+        kept = self.standardised_already(ctx)
+        self.code_mean[kept], self.code_std[kept] = 0.0, 1.0
         with torch.random.fork_rng(devices=[]):   # its initial weights from the run's seed, not from what the
             torch.manual_seed(ctx.seed)            # process drew before (a training in this process, or none)
             self.net = nn.Sequential(nn.Linear(codes.shape[1] + 1, 128), nn.ReLU(), nn.Linear(128, 128), nn.ReLU(),
