@@ -19,7 +19,10 @@
 # before the one-standard-error rule). With the slices 5, 10 and 100 parts were run, for both families
 # (docs/learning_curve/slices/: SIZES=100 bash scripts/learning_curve.sh runs/curve_slices threads=2, then
 # evaluated again with the baselines' one-standard-error rule: EVALUATE_FROM=runs/curve_slices SIZES=100 into
-# runs/curve_1se; then SIZES="5 10" into runs/curve_1se, one family after the other).
+# runs/curve_1se; then SIZES="5 10", then SIZES=20 into runs/curve_1se, one family after the other), and all
+# evaluated again once gpr and the blackbox kept the model's standardisation of the hand-made inputs:
+# EVALUATE_FROM=runs/curve_1se SIZES="5 10 20" and EVALUATE_FROM=runs/curve_slices SIZES=100 into
+# runs/curve_std (a run evaluated from another holds no checkpoints: evaluate from where it was trained).
 # The curves before come back with
 # code.sections=false (docs/learning_curve/no_sections/), code.sections=false stages.vae.force_weight=0
 # (docs/learning_curve/force_weight_0/) and code.sections=false stages.head.loss=mse head.hidden=128
