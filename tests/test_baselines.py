@@ -490,8 +490,8 @@ def test_without_validation_parts_the_baselines_read_what_the_head_reads(with_se
 def test_baselines_keep_the_model_s_standardisation_of_the_cross_section(with_sections):
     """The model standardised the cross-section over the training parts, with a floor on a column's spread. A
     column the training parts do not vary (0 in a and b) but the test part does (8) reaches the blackbox and
-    gpr as 8, not as 8 / 1e-6, which sent the blackbox's force far beyond the training forces; they standardise
-    the encoder's code alone (0 and 1 in a and b, 0.45 in the test part)."""
+    gpr as 8, not as 8 / 1e-6, and the blackbox's force stays within reach of the training forces; they
+    standardise the encoder's code alone (0 and 1 in a and b, 0.45 in the test part)."""
     context, test = with_sections
     context.latents[:, 32] = torch.tensor([0.0, 0.0, 8.0, 0.0])
     sections = [8.0] + [0.3] * (SECTION_SIZE - 1)

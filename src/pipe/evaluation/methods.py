@@ -166,8 +166,8 @@ class CodeBaseline(Method):
         """(columns read,) bool: True where the column is the cross-section's or the slices', which the model
         standardised over the same training parts with a floor on their spread (pipe.model.standardiser). A
         baseline keeps those as they are: standardising them again would undo the floor, and a column that the
-        training parts do not vary (a rect family's pin count at 10 mm over 5 training parts) would grow
-        a million times on a part that differs there."""
+        training parts do not vary (the number of regions 10 mm from the mating end over 5 training rect plugs)
+        would be magnified a million-fold on a part that differs there."""
         columns = torch.arange(ctx.latents.shape[1])[code_inputs(ctx)[self.inputs]]
         encoder = code_blocks(ctx).get("code", range(0))
         return (columns < encoder.start) | (columns >= encoder.stop)
