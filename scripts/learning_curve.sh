@@ -22,7 +22,9 @@
 # runs/curve_1se; then SIZES="5 10", then SIZES=20 into runs/curve_1se, one family after the other), and all
 # evaluated again once gpr and the blackbox kept the model's standardisation of the hand-made inputs:
 # EVALUATE_FROM=runs/curve_1se SIZES="5 10 20" and EVALUATE_FROM=runs/curve_slices SIZES=100 into
-# runs/curve_std (a run evaluated from another holds no checkpoints: evaluate from where it was trained).
+# runs/curve_std (a run evaluated from another holds no checkpoints: evaluate from where it was trained);
+# then 50 parts trained into runs/curve_std with the present code (FAMILIES="rect pins" SIZES=50 ... threads=2),
+# which wrote the report of all five sizes (docs/learning_curve/slices/).
 # The curves before come back with
 # code.sections=false (docs/learning_curve/no_sections/), code.sections=false stages.vae.force_weight=0
 # (docs/learning_curve/force_weight_0/) and code.sections=false stages.head.loss=mse head.hidden=128
