@@ -13,22 +13,9 @@
 # their checkpoints only read) into OUT instead of training: after a change of the evaluation alone (e.g.
 # the identification engine), the same results as a whole new curve in a fraction of its time. Its identified
 # fits (named by their inputs' hash, so never stale) are copied into OUT first, so no oracle is fitted again.
-# The committed curve (README, docs/learning_curve/) is measured with train.py's defaults of 2026-11-27 (stage 2
-# and the evaluation; its stage-1 encoders are those of the curve before it), before the mesh's slices became
-# the default: add code.slices=false to come back to it (its baselines chose their input by the plain minimum,
-# before the one-standard-error rule). With the slices 5, 10 and 100 parts were run, for both families
-# (docs/learning_curve/slices/: SIZES=100 bash scripts/learning_curve.sh runs/curve_slices threads=2, then
-# evaluated again with the baselines' one-standard-error rule: EVALUATE_FROM=runs/curve_slices SIZES=100 into
-# runs/curve_1se; then SIZES="5 10", then SIZES=20 into runs/curve_1se, one family after the other), and all
-# evaluated again once gpr and the blackbox kept the model's standardisation of the hand-made inputs:
-# EVALUATE_FROM=runs/curve_1se SIZES="5 10 20" and EVALUATE_FROM=runs/curve_slices SIZES=100 into
-# runs/curve_std (a run evaluated from another holds no checkpoints: evaluate from where it was trained);
-# then 50 parts trained into runs/curve_std with the present code (FAMILIES="rect pins" SIZES=50 ... threads=2),
-# which wrote the report of all five sizes (docs/learning_curve/slices/).
-# The curves before come back with
-# code.sections=false (docs/learning_curve/no_sections/), code.sections=false stages.vae.force_weight=0
-# (docs/learning_curve/force_weight_0/) and code.sections=false stages.head.loss=mse head.hidden=128
-# stages.vae.force_weight=0 (stage 2's paper loss and a head of width 128, docs/learning_curve/paper_loss_width128/).
+# A folder of evaluations (no checkpoints) is followed back to the folder they evaluated (train.py does that).
+# Which commands made the committed curves, and which overrides bring the earlier ones back: README,
+# "Learning curve", and docs/results-history.md.
 #   [FAMILIES=pins] bash scripts/learning_curve.sh OUT [overrides...]       e.g. OUT = runs/curve
 set -euo pipefail
 cd "$(dirname "$0")/.."

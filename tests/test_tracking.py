@@ -151,6 +151,11 @@ def test_seeds_trained_then_evaluated_keep_their_parent_and_child_runs(tiny_data
     parent = next(r for r in runs if r.info.run_id == trained.mlflow_run_id)
     assert "test/pipe/fit_F_mean" in parent.data.metrics
 
+    # the evaluation's folder (no checkpoints) evaluated again: its seeds' training, into the same runs
+    again = run_seeds(smoke_config(tiny_data, tmp_path / "e2", "phase=evaluate", f"resume={tmp_path / 'e'}", *extra))
+    assert again.mlflow_run_id == trained.mlflow_run_id and again.summary == evaluated.summary
+    assert len(MlflowClient().search_runs([mlflow.get_experiment_by_name("seed_phases").experiment_id])) == 3
+
 
 @pytest.mark.slow
 def test_a_multirun_is_a_parent_run_with_one_child_per_job(tiny_data, tmp_path):

@@ -335,6 +335,18 @@ def test_train_then_evaluate_is_one_run_in_two_and_reads_the_trained_folder_only
     assert (tmp_path / "evaluated/report/losses.csv").read_text() == (tmp_path / "all/report/losses.csv").read_text()
 
 
+def test_evaluating_an_evaluation_follows_it_back_to_the_trained_folder(tiny_data, tmp_path):
+    """resume=<an evaluation's folder> (which holds no checkpoints) evaluates the training that evaluation read,
+    as scripts/learning_curve.sh's EVALUATE_FROM does with a curve evaluated from another folder."""
+    run_domain(smoke_config(tiny_data, tmp_path / "trained", "phase=train"))
+    first = run_domain(smoke_config(tiny_data, tmp_path / "first", "phase=evaluate", f"resume={tmp_path / 'trained'}"))
+    files = {p: p.read_bytes() for p in (tmp_path / "first").rglob("*") if p.is_file()}
+    again = run_domain(smoke_config(tiny_data, tmp_path / "again", "phase=evaluate", f"resume={tmp_path / 'first'}"))
+    assert {n: r.domain for n, r in again.results.items()} == {n: r.domain for n, r in first.results.items()}
+    assert {p: p.read_bytes() for p in (tmp_path / "first").rglob("*") if p.is_file()} == files
+    assert not any((tmp_path / "again").rglob("*.ckpt"))
+
+
 @pytest.mark.parametrize("overrides, message", [
     (["phase=evaluate"], "name its folder with resume="),
     (["phase=fit"], "unknown phase=fit; choose one of all, train, evaluate"),

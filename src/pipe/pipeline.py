@@ -253,6 +253,21 @@ def check_phase(cfg: DictConfig) -> str:
     return phase
 
 
+def evaluated_folder(folder: Path) -> Path:
+    """The trained folder phase=evaluate reads for resume=<folder>: the folder itself, or, where it is an
+    evaluation's (no checkpoints; a config.yaml of phase=evaluate), the folder that evaluation read, followed
+    back to the training (a recorded relative path is read from where this command runs, as it was given)."""
+    seen = set()
+    while not holds_training(folder) and (folder / "config.yaml").is_file() and folder.resolve() not in seen:
+        seen.add(folder.resolve())
+        recorded = OmegaConf.load(folder / "config.yaml")
+        if recorded.get("phase") != "evaluate" or recorded.get("resume") is None:
+            break
+        log.info("%s is an evaluation of %s: evaluating that folder's training", folder, recorded.resume)
+        folder = Path(recorded.resume)
+    return folder
+
+
 def check_trained(cfg: DictConfig, folder: Path) -> None:
     """Refuse to evaluate a folder whose stages have not run to their configured epochs (the chosen force
     weight's, where the run chose one)."""
@@ -278,6 +293,8 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     resume = cfg.resume is not None
     trained_dir = Path(cfg.resume or cfg.paths.output_dir)       # the checkpoints' folder
     run_dir = Path(cfg.paths.output_dir) if phase == "evaluate" else trained_dir   # where this run writes
+    if phase == "evaluate":
+        trained_dir = evaluated_folder(trained_dir)
     if resume:
         check_resumed_layout(trained_dir, choosing=len(weights) > 1)
     if phase == "evaluate":
@@ -359,6 +376,8 @@ def run_seeds(cfg: DictConfig) -> SeedsResult | TrainedRun:
     seeds = check_seeds(cfg.seeds)
     phase = check_phase(cfg)
     trained = Path(cfg.resume or cfg.paths.output_dir)
+    if phase == "evaluate":   # the folder of an evaluation's seeds: that of the seeds' training, and its parent run
+        trained = evaluated_folder(trained / f"seed_{seeds[0]}").parent
     out = Path(cfg.paths.output_dir) if phase == "evaluate" else trained
     names = " ".join(cfg[kind]._target_.rsplit(".", 1)[-1] for kind in ("encoder", "model"))
     tags = {"domain": str(cfg.domain.name), "seeds": ",".join(map(str, seeds))}
