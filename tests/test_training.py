@@ -337,7 +337,10 @@ def test_train_then_evaluate_is_one_run_in_two_and_reads_the_trained_folder_only
 
 def test_evaluating_an_evaluation_follows_it_back_to_the_trained_folder(tiny_data, tmp_path):
     """resume=<an evaluation's folder> (which holds no checkpoints) evaluates the training that evaluation read,
-    as scripts/learning_curve.sh's EVALUATE_FROM does with a curve evaluated from another folder."""
+    as scripts/learning_curve.sh's EVALUATE_FROM does with a curve evaluated from another folder; a folder
+    whose config.yaml is no run's is refused as one without checkpoints."""
+    from pipe.errors import PipeError
+
     run_domain(smoke_config(tiny_data, tmp_path / "trained", "phase=train"))
     first = run_domain(smoke_config(tiny_data, tmp_path / "first", "phase=evaluate", f"resume={tmp_path / 'trained'}"))
     files = {p: p.read_bytes() for p in (tmp_path / "first").rglob("*") if p.is_file()}
@@ -345,6 +348,10 @@ def test_evaluating_an_evaluation_follows_it_back_to_the_trained_folder(tiny_dat
     assert {n: r.domain for n, r in again.results.items()} == {n: r.domain for n, r in first.results.items()}
     assert {p: p.read_bytes() for p in (tmp_path / "first").rglob("*") if p.is_file()} == files
     assert not any((tmp_path / "again").rglob("*.ckpt"))
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "config.yaml").write_text("- not\n- a run's config\n")     # followed nowhere: refused
+    with pytest.raises(PipeError, match="other: resume= names a folder without checkpoints"):
+        run_domain(smoke_config(tiny_data, tmp_path / "none", "phase=evaluate", f"resume={tmp_path / 'other'}"))
 
 
 @pytest.mark.parametrize("overrides, message", [

@@ -260,11 +260,15 @@ def evaluated_folder(folder: Path) -> Path:
     seen = set()
     while not holds_training(folder) and (folder / "config.yaml").is_file() and folder.resolve() not in seen:
         seen.add(folder.resolve())
-        recorded = OmegaConf.load(folder / "config.yaml")
-        if recorded.get("phase") != "evaluate" or recorded.get("resume") is None:
+        try:
+            recorded = OmegaConf.load(folder / "config.yaml")
+            source = recorded.resume if recorded.get("phase") == "evaluate" else None
+        except Exception:   # not a run's config: the folder is refused below as one without checkpoints
             break
-        log.info("%s is an evaluation of %s: evaluating that folder's training", folder, recorded.resume)
-        folder = Path(recorded.resume)
+        if source is None:
+            break
+        log.info("%s is an evaluation of %s: evaluating that folder's training", folder, source)
+        folder = Path(source)
     return folder
 
 
