@@ -734,3 +734,64 @@ def test_mesh_slices_prints_a_d_subs_shell_and_pins_apart(tiny_data):
     printed = run_script("mesh_slices.py", str(tiny_data), "dsub15", "dsub26").splitlines()
     assert printed[0].startswith("part | 0.5 mm: regions, length, area | 2 mm:")
     assert [row.split(" | ")[2].split(",")[0] for row in printed[1:]] == ["16", "27"]
+
+
+def test_twin_oracle_twins_and_expectation_are_the_generators_same_parts_and_motions(tmp_path):
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from twin_oracle import expected_parts, pooled, twin_parts
+
+    from pipe.data.dataset import load_dataset
+    from pipe.data.prepared import PreprocessSettings, prepare_part
+    from pipe.data.spec import load_spec
+    from pipe.synthetic.generate import TRIALS_PER_PART, generate_dataset
+
+    root = generate_dataset(tmp_path / "pins", family="pins", count=2)
+    settings = PreprocessSettings(points=256, cloud_seed=0, rate_hz=100.0, steady_samples=1)
+    own = [prepare_part(part, load_spec(root), settings) for part in load_dataset(root).parts.values()]
+
+    def forces(parts):
+        return [p.force for part in parts for p in part.profiles]
+
+    # the dataset's own stream gives the dataset's trials back to the digit: a twin is the generator's same part
+    same = twin_parts("pins", 2, 0, own, settings, stream=0)
+    assert all(np.array_equal(a, b) for a, b in zip(forces(same), forces(own)))
+    assert [part.cloud for part in same] == [part.cloud for part in own]
+    # another stream draws every trial again (other conditions, other noise), the same way every time
+    first, again, second = (twin_parts("pins", 2, 0, own, settings, stream=s) for s in (1000, 1000, 1001))
+    assert all(np.array_equal(a, b) for a, b in zip(forces(first), forces(again)))
+    assert not any(len(a) == len(b) and np.allclose(a, b) for a, b in zip(forces(first), forces(own)))
+    assert not any(len(a) == len(b) and np.allclose(a, b) for a, b in zip(forces(first), forces(second)))
+    # pooled twins: each part with both twins' trials, the first twin's first
+    both = pooled([first, second])
+    assert [part.name for part in both] == [part.name for part in own]
+    assert all(len(part.profiles) == len(part.static_curves) == 2 * TRIALS_PER_PART for part in both)
+    assert forces(both)[:TRIALS_PER_PART] == forces(first)[:TRIALS_PER_PART]
+    assert forces(both)[TRIALS_PER_PART:2 * TRIALS_PER_PART] == forces(second)[:TRIALS_PER_PART]
+    # the expected force keeps each trial's own motion (its depth within the noise and the file's rounding, where
+    # another trial's speed or overtravel would move it by millimetres), starts at rest without bias or noise,
+    # and is not the measured force
+    expected = expected_parts("pins", 2, 0, own, settings, draws=3)
+    assert set(expected) == {"mean", "fit"}
+    for mine, guess, weighted in zip(own, expected["mean"], expected["fit"]):
+        # the FIT-weighted mean of the same draws is another mean of them
+        assert not np.allclose(weighted.profiles[0].force, guess.profiles[0].force)
+        assert len(guess.profiles) == TRIALS_PER_PART and guess.cloud is mine.cloud
+        for measured, predicted in zip(mine.profiles, guess.profiles):
+            assert len(predicted.depth) == len(measured.depth)
+            assert np.abs(predicted.depth - measured.depth).max() < 0.02
+            assert np.abs(predicted.force[:5]).max() == 0.0 and np.array_equal(predicted.force, predicted.force_clean)
+            assert not np.allclose(predicted.force, measured.force, atol=0.05)
+
+
+def test_twin_oracle_table_gives_each_fit_over_the_seeds_and_the_median_part(tmp_path):
+    rows = [{"family": "pins", "seed": seed, "fit": fit, "fit_F": value, "parts": parts}
+            for seed, fit, value, parts in [
+                (0, "own", 80.0, {"pins_0000": 90.0, "pins_0001": 70.0}),
+                (1, "own", 84.0, {"pins_0000": 92.0, "pins_0001": 76.0}),
+                (0, "twins=1", 20.0, {"pins_0000": 88.0, "pins_0001": -48.0})]]
+    printed = printed_table("twin_oracle.py", rows, tmp_path, "--table")
+    # own: mean 82 ± stdev(80, 84); median of 90, 70, 92, 76 is 83; one twin: one seed, the median part 20
+    assert f"| pins | own | 82.00 ± {statistics.stdev([80.0, 84.0]):.2f} | 83.00 | 2 |" in printed
+    assert "| pins | twins=1 | 20.00 ± 0.00 | 20.00 | 1 |" in printed

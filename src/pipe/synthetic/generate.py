@@ -73,6 +73,13 @@ def simulate_parts(parts: dict[str, Plug | Pin] | list[str], seed: int,
 def _simulate_together(parts: dict[str, Plug | Pin], seed: int, trials: int) -> list[SimulatedTrial]:
     rngs = {name: part_rng(seed, name) for name in parts}
     jobs = [(name, draw_conditions(parts[name], rngs[name])) for name in parts for _ in range(trials)]
+    return simulate_conditions(parts, jobs, rngs)
+
+
+def simulate_conditions(parts: dict[str, Plug | Pin], jobs: list[tuple[str, TrialConditions]],
+                        rngs: dict[str, np.random.Generator]) -> list[SimulatedTrial]:
+    """One trial per (part name, conditions) job, integrated together; each part's sensor noise drawn from its
+    generator in `rngs`, trial after trial."""
     commands = [command_profile(c.gap, target_depth(parts[n]) + c.overtravel, c.speed, REST_S, HOLD_S)
                 for n, c in jobs]
     n_steps = max(len(cmd) for cmd in commands)

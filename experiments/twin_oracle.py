@@ -1,0 +1,220 @@
+"""Issue 9, "an honest oracle": how high can a prediction from geometry alone score on a generated family?
+
+The oracle identifies each test part's profiles on that part's own recordings and is scored on the same
+recordings: it fits, besides the part's geometry, the ten trials' own conditions (speed, misalignment, friction
+scale, sensor bias, contact offsets: `pipe.synthetic.generate.draw_conditions`), which no method that reads
+the geometry can know. The twin oracle separates the two: the same identification (the same starts, the same
+stopping rule) fitted on the recordings of the part's twins (the generator's same part, its trials drawn
+again from other streams: `--twins` twins of ten trials each, pooled) and scored on the part's own
+recordings, as every other method is. With many twins it approaches the best this dynamic model can predict
+from the part's geometry; nothing that maps geometry to the profile, PIPE included, should beat it by more
+than its spread.
+
+Rows (per family, seed and fit: `own` the oracle as reported, `twins=K` fitted on K twins) with the domain's
+FIT(F) and each part's, printed and appended to OUT as JSON lines; `--table` summarises them. Usage (the
+family's test parts as the learning curve splits them; two worker processes):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/twin_oracle.py OUT.jsonl --family pins \
+      --seeds 0 1 2 --twins 1 3
+  python experiments/twin_oracle.py OUT.jsonl --table      # --parts: each part's FIT(F) too
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import zlib
+from collections import defaultdict
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import append_row
+from hydra import compose, initialize_config_module
+from summarise import read_rows
+
+from pipe.data.dataset import load_dataset
+from pipe.data.prepared import PartData, PreprocessSettings
+from pipe.data.preprocess import preprocess_trial
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import evaluate_methods
+from pipe.evaluation.identification import IdentificationSettings, identify
+from pipe.evaluation.metrics import force_metrics
+from pipe.model import ltv
+from pipe.pipeline import build_model, load_domain
+from pipe.synthetic.families import family_parts
+from pipe.synthetic.generate import FORCE_NOISE, draw_conditions, simulate_conditions, simulate_parts, write_dataset
+
+TWIN_STREAMS = 1000     # twin k's trials are simulated with generator seed TWIN_STREAMS + k (the dataset's: 0)
+EXPECTATION_STREAM = 2000   # the unseen conditions' draws of `expected_parts`
+
+
+def family_config(family: str, seed: int):
+    """The learning curve's config for a family (its 100-part domain: the test parts do not change with it)."""
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
+        return compose(config_name="config", overrides=[
+            "data=family", f"data.generate.family={family}", "domain=curve", f"seed={seed}"])
+
+
+def twin_parts(family: str, count: int, seed: int, test: list[PartData], settings: PreprocessSettings,
+               stream: int) -> list[PartData]:
+    """The test parts' twins: the generator's same parts (`family_parts(family, count, seed)`), their trials
+    simulated from generator seed `stream` (the dataset's own: `seed`)."""
+    drawn = family_parts(family, count, seed)
+    parts = {p.name: drawn[p.name] for p in test}
+    return _read_back(parts, simulate_parts(parts, stream), test, settings, f"twins of stream {stream}")
+
+
+def expected_parts(family: str, count: int, seed: int, test: list[PartData], settings: PreprocessSettings,
+                   draws: int) -> dict[str, list[PartData]]:
+    """The test parts with each trial's force replaced by the generator's expectation of it given what the
+    recording shows: the trial's own speed, gap and overtravel (its commanded motion) with the conditions no
+    recording shows (misalignment, friction scale, contact offsets) drawn `draws` times from their
+    distributions; written and read back as the dataset's. Two expectations of the same draws' noise-free
+    forces: `mean`, their mean, which minimises the expected squared error; `fit`, their mean weighted by
+    1 / (the draw's sum of squares about its mean, sensor noise included), which maximises the expected FIT
+    (a trial's FIT divides its squared error by that sum, which the unseen conditions change too)."""
+    drawn = family_parts(family, count, seed)
+    parts = {p.name: drawn[p.name] for p in test}
+    own = simulate_parts(parts, seed)
+    expected: dict[str, list] = {"mean": [], "fit": []}
+    for name, part in parts.items():
+        rng = np.random.default_rng([EXPECTATION_STREAM, zlib.crc32(name.encode())])
+        trials = [t for t in own if t.part == name]
+        jobs = [(name, replace(draw_conditions(part, rng), speed=t.conditions.speed, gap=t.conditions.gap,
+                               overtravel=t.conditions.overtravel, sensor_bias=0.0))
+                for t in trials for _ in range(draws)]
+        simulated = simulate_conditions({name: part}, jobs, {name: rng})
+        for k, trial in enumerate(trials):
+            alike = simulated[k * draws:(k + 1) * draws]
+            forces = np.stack([t.force_clean for t in alike])
+            spread = ((forces - forces.mean(axis=1, keepdims=True)) ** 2).sum(axis=1) + forces.shape[1] * FORCE_NOISE**2
+            depth = np.mean([t.depth for t in alike], axis=0)
+            for kind, weights in (("mean", np.ones(draws)), ("fit", 1.0 / spread)):
+                force = weights @ forces / weights.sum()
+                expected[kind].append(replace(trial, depth=depth, force=force, force_clean=force))
+    return {kind: _read_back(parts, trials, test, settings, f"expected ({kind}) over {draws} draws")
+            for kind, trials in expected.items()}
+
+
+def _read_back(parts: dict, trials: list, test: list[PartData], settings: PreprocessSettings,
+               command: str) -> list[PartData]:
+    """The test parts with these simulated trials instead of their own, written as a dataset and read back as
+    the dataset's (the same rounding, zeroing and resampling); each keeps its part's cloud."""
+    with tempfile.TemporaryDirectory() as folder:
+        root = Path(folder) / "parts"
+        root.mkdir()
+        write_dataset(root, parts, command, trials)
+        loaded = load_dataset(root, parts=list(parts)).parts
+        return [replace(part, profiles=[preprocess_trial(t, settings.rate_hz, settings.steady_samples)
+                                        for t in loaded[part.name].trials],
+                        static_curves=[t.static for t in loaded[part.name].trials]) for part in test]
+
+
+def pooled(twins: list[list[PartData]]) -> list[PartData]:
+    """Each part with the trials of all its twins (lists of the same parts in the same order), in order."""
+    return [replace(same[0], profiles=[p for twin in same for p in twin.profiles],
+                    static_curves=[s for twin in same for s in twin.static_curves]) for same in zip(*twins)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", help="JSON lines file the rows are appended to")
+    ap.add_argument("--family", default="pins")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--twins", type=int, nargs="*", default=[], help="numbers of twins pooled per fit")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--expected", type=int, default=0, metavar="DRAWS",
+                    help="also score the generator's expected force over DRAWS draws of the unseen conditions")
+    ap.add_argument("--identify-expected", action="store_true",
+                    help="with --expected: also the oracle identified on the FIT-weighted expectation")
+    ap.add_argument("--skip-own", action="store_true", help="leave out the oracle on the parts' own recordings")
+    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap.add_argument("--parts", action="store_true", help="with --table: each part's FIT(F) per fit too")
+    args = ap.parse_args()
+    if args.identify_expected and not args.expected:
+        ap.error("--identify-expected needs --expected DRAWS")
+    if args.table:
+        rows = read_rows(args.out)
+        print(table(rows) + ("\n\n" + part_table(rows) if args.parts else ""))
+        return
+    cfg = family_config(args.family, args.seeds[0])
+    ltv.set_backend(cfg.simulator)
+    data = load_domain(cfg)
+    test = data.splits["test"]
+    generated = cfg.data.generate
+    preprocessing = PreprocessSettings.from_config(cfg.data)
+    twins = [twin_parts(generated.family, generated.count, generated.seed, test, preprocessing, TWIN_STREAMS + k)
+             for k in range(max(args.twins, default=0))]
+    expected = {}
+    if args.expected:
+        expected = expected_parts(generated.family, generated.count, generated.seed, test, preprocessing,
+                                  args.expected)
+        for kind, guesses in expected.items():
+            per_part = {part.name: float(np.mean([force_metrics(p.force, e.force, 1.0 / cfg.data.rate_hz)["fit_F"]
+                                                  for p, e in zip(part.profiles, guess.profiles)]))
+                        for part, guess in zip(test, guesses)}
+            row = {"family": args.family, "seed": None, "fit": f"expected_{kind}={args.expected}",
+                   "fit_F": float(np.mean(list(per_part.values()))), "parts": per_part}
+            append_row(args.out, row)
+            print(args.family, row["fit"], f"{row['fit_F']:.2f}", flush=True)
+    for seed in args.seeds:
+        cfg = family_config(args.family, seed)
+        torch.manual_seed(seed)
+        model = build_model(cfg, data).eval()
+        settings = {**dict(cfg.evaluation), "identification": {**dict(cfg.evaluation.identification),
+                                                                "workers": args.workers, "cache": None}}
+        restarts = IdentificationSettings.from_config(settings["identification"]).restarts
+        ctx = EvalContext(model, torch.zeros(len(test), model.head.latent_dim),
+                          {p.name: i for i, p in enumerate(test)}, data.splits["train"], 1.0 / cfg.data.rate_hz,
+                          seed, settings)
+        fits = {} if args.skip_own else {"own": None}
+        for count in args.twins:
+            fitted = identify(replace(ctx, cache={}), pooled(twins[:count]))
+            fits[f"twins={count}"] = {part.name: fit for part, fit in zip(test, fitted)}
+        if args.identify_expected:
+            fitted = identify(replace(ctx, cache={}), expected["fit"])
+            fits[f"identified_expected_fit={args.expected}"] = {part.name: fit for part, fit in zip(test, fitted)}
+        for name, fitted in fits.items():
+            scored = ctx if fitted is None else replace(ctx, cache={f"identified_force_{restarts}": fitted})
+            result = evaluate_methods(scored, test, ["oracle"])["oracle"]
+            row = {"family": args.family, "seed": seed, "fit": name, "fit_F": result.domain["fit_F"],
+                   "parts": {p: m["fit_F"] for p, m in result.per_part.items()}}
+            append_row(args.out, row)
+            print(args.family, seed, name, f"{row['fit_F']:.2f}", flush=True)
+
+
+def table(rows: list[dict]) -> str:
+    """Per family and fit: the oracle's FIT(F) on the test parts' own recordings, mean ± std over the seeds, and
+    the median over every test part and seed (one part's extrapolation can pull the mean far down)."""
+    fits: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for row in rows:
+        fits[(row["family"], row["fit"])].append(row)
+    lines = ["| family | fitted on | FIT(F) % | median over the parts | seeds |", "| --- | --- | --- | --- | --- |"]
+    for (family, fit), found in fits.items():
+        values = [row["fit_F"] for row in found]
+        spread = statistics.stdev(values) if len(values) > 1 else 0.0
+        median = statistics.median(v for row in found for v in row["parts"].values())
+        lines.append(f"| {family} | {fit} | {statistics.fmean(values):.2f} ± {spread:.2f} | {median:.2f} | "
+                     f"{len(values)} |")
+    return "\n".join(lines)
+
+
+def part_table(rows: list[dict]) -> str:
+    """Each test part's FIT(F) per fit, mean over the seeds (where the oracle's lead on its own recordings is)."""
+    values: dict[tuple[str, str], dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for row in rows:
+        for part, fit_f in row["parts"].items():
+            values[(row["family"], part)][row["fit"]].append(fit_f)
+    fits = list(dict.fromkeys(row["fit"] for row in rows))
+    lines = ["| part | " + " | ".join(fits) + " |", "| --- |" + " --- |" * len(fits)]
+    for (_, part), by_fit in sorted(values.items()):
+        lines.append(f"| {part} | " + " | ".join(f"{statistics.fmean(by_fit[f]):.2f}" if by_fit[f] else ""
+                                                 for f in fits) + " |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()
