@@ -1,20 +1,27 @@
-"""Issue 9, "an honest oracle": how high can a prediction from geometry alone score on a generated family?
+"""Issue 9, "an honest oracle": what the oracle's score on a generated family is made of, and how high any
+prediction from a part's geometry can score (docs/experiments.md, "What the oracle's lead is made of").
 
-The oracle identifies each test part's profiles on that part's own recordings and is scored on the same
-recordings: it fits, besides the part's geometry, the ten trials' own conditions (speed, misalignment, friction
-scale, sensor bias, contact offsets: `pipe.synthetic.generate.draw_conditions`), which no method that reads
-the geometry can know. The twin oracle separates the two: the same identification (the same starts, the same
-stopping rule) fitted on the recordings of the part's twins (the generator's same part, its trials drawn
-again from other streams: `--twins` twins of ten trials each, pooled) and scored on the part's own
-recordings, as every other method is. With many twins it approaches the best this dynamic model can predict
-from the part's geometry; nothing that maps geometry to the profile, PIPE included, should beat it by more
-than its spread.
+The oracle identifies each test part's profiles on that part's own ten recordings and is scored on the same
+ten: besides the part, it fits those trials' own conditions (misalignment, friction scale, contact offsets:
+`pipe.synthetic.generate.draw_conditions`), which no recording's motion shows. Scored on the part's own
+recordings, as every method is:
+  own                 the oracle as the evaluation reports it
+  twins=K             the same identification (starts, stopping rule, ridge) fitted on the pooled trials of
+                      the part's K twins: the generator's same part, its trials drawn again from other streams
+  expected_mean=D     no fit: each trial's noise-free force averaged over D draws of the unseen conditions,
+                      with the trial's own speed, gap and overtravel (the motion its recording shows)
+  expected_fit=D      the same draws weighted to maximise the expected FIT(F): the ceiling of any prediction
+                      from the part and its motion, up to the draws' sampling error
+  identified_expected_fit=D   the identification fitted on the expected_fit trials: about the best this
+                      dynamic model can do from the part
+The expectations do not depend on the seed (their rows carry none); the identifications' random starts do.
 
-Rows (per family, seed and fit: `own` the oracle as reported, `twins=K` fitted on K twins) with the domain's
-FIT(F) and each part's, printed and appended to OUT as JSON lines; `--table` summarises them. Usage (the
-family's test parts as the learning curve splits them; two worker processes):
+Rows (the domain's FIT(F) and each part's) are printed and appended to OUT as JSON lines; `--table`
+summarises them. Usage (the family's test parts as the learning curve splits them; two worker processes):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/twin_oracle.py OUT.jsonl --family pins \
       --seeds 0 1 2 --twins 1 3
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/twin_oracle.py OUT.jsonl --family pins \
+      --expected 32 --identify-expected --skip-own --seeds 0 1 2
   python experiments/twin_oracle.py OUT.jsonl --table      # --parts: each part's FIT(F) too
 """
 from __future__ import annotations
