@@ -795,3 +795,30 @@ def test_twin_oracle_table_gives_each_fit_over_the_seeds_and_the_median_part(tmp
     # own: mean 82 ± stdev(80, 84); median of 90, 70, 92, 76 is 83; one twin: one seed, the median part 20
     assert f"| pins | own | 82.00 ± {statistics.stdev([80.0, 84.0]):.2f} | 83.00 | 2 |" in printed
     assert "| pins | twins=1 | 20.00 ± 0.00 | 20.00 | 1 |" in printed
+
+
+def test_expected_head_trains_each_target_on_its_own_parts_in_order():
+    from types import SimpleNamespace
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import training_targets
+
+    def parts(*names):
+        return [SimpleNamespace(name=name) for name in names]
+
+    train, val, test = parts("a", "b"), parts("c"), parts("d", "e")
+    expected = parts("a", "b", "c", "d", "e")
+    targets = training_targets(train, val, test, expected)
+    assert targets["recorded"] == (train, val)
+    assert targets["expected"] == (expected[:2], expected[2:3])      # the same parts' expectation, not the test's
+    assert targets["expected_test"] == (expected[3:], expected[3:])
+    assert training_targets(train, val, test, []) == {"recorded": (train, val)}
+    with pytest.raises(ValueError, match="not the training, validation and test parts"):
+        training_targets(train, val, test, parts("a", "c", "b", "d", "e"))
+
+
+def test_expected_head_refuses_an_unknown_target_before_any_work(tmp_path):
+    done = subprocess.run([sys.executable, "expected_head.py", str(tmp_path / "rows.jsonl"), "--targets",
+                           "recorded,bogus"], cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "unknown target bogus" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "rows.jsonl").exists()

@@ -1,0 +1,110 @@
+"""Issue 9, the pins target: is the head's map from a part to its profiles limited by what it can represent,
+or by the noise of the recordings it learns from? (docs/experiments.md, "The head trained on the expectation")
+
+On a generated family the head is trained from the generator's own shape parameters (`parameter_codes.py`'s
+`geometry`: a perfect encoder) and scored on the test parts' own recordings, as every method is, once per
+kind of training target:
+  recorded       the training and validation parts' own recordings: what PIPE learns from
+  expected       the same trials' FIT-weighted expectation (`twin_oracle.py`'s `expected_fit`: the trial's
+                 own motion, the unseen conditions drawn DRAWS times): what infinitely many recordings of the
+                 same 110 parts would teach, whose optimum is the best prediction of each trial
+  expected_test  the test parts' own expectation, trained and validated on it: how close one head shared by
+                 the parts comes to the ceiling where it need not generalise at all (not a method: it reads
+                 the test parts' generator)
+If `expected` reaches what the dynamic model identified on the test parts' expectation reaches (80.89 % on
+pins), 100 parts' recordings are what limits the head; if it stays where `recorded` is, the head's map is.
+Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
+  OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
+      --seeds 0 1 2 --draws 32
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+from common import score
+from omegaconf import open_dict
+from parameter_codes import generator_parts, parameter_codes
+from twin_oracle import expected_parts, family_config
+
+from pipe.data.prepared import PartData, PreprocessSettings
+from pipe.model import ltv
+from pipe.pipeline import build_components, build_model, load_domain
+from pipe.training.fit import fit_head
+
+TARGETS = ("recorded", "expected", "expected_test")
+
+
+def training_targets(train: list[PartData], val: list[PartData], test: list[PartData],
+                     expected: list[PartData]) -> dict[str, tuple[list[PartData], list[PartData]]]:
+    """Each target's training and validation parts; `expected` holds the expectation of the training, validation
+    and test parts in that order (none: `recorded` alone)."""
+    targets = {"recorded": (train, val)}
+    if not expected:
+        return targets
+    if [p.name for p in expected] != [p.name for p in train + val + test]:
+        raise ValueError("the expectation's parts are not the training, validation and test parts in order")
+    split, end = len(train), len(train) + len(val)
+    return targets | {"expected": (expected[:split], expected[split:end]),
+                      "expected_test": (expected[end:], expected[end:])}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", help="JSON lines file the rows are appended to")
+    ap.add_argument("--family", default="pins")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--draws", type=int, default=32, help="draws of the unseen conditions per trial")
+    ap.add_argument("--epochs", type=int, default=None, help="stage 2's epochs (default: the config's)")
+    ap.add_argument("--targets", default=",".join(TARGETS), help=f"comma-separated, of {', '.join(TARGETS)}")
+    args = ap.parse_args()
+    targets = args.targets.split(",")
+    if unknown := set(targets) - set(TARGETS):
+        raise SystemExit(f"unknown target {', '.join(sorted(unknown))}: the targets are {', '.join(TARGETS)}")
+    cfg = family_config(args.family, args.seeds[0])
+    ltv.set_backend(cfg.simulator)
+    data = load_domain(cfg)
+    train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
+    ordered = train + val + test
+    index = {p.name: i for i, p in enumerate(ordered)}
+    generated = cfg.data.generate
+    settings = PreprocessSettings.from_config(cfg.data)
+    start = time.perf_counter()
+    expected = [] if targets == ["recorded"] else expected_parts(
+        generated.family, generated.count, generated.seed, ordered, settings, args.draws)["fit"]
+    print(f"expectation of {len(ordered)} parts over {args.draws} draws: {time.perf_counter() - start:.0f} s",
+          flush=True)
+    fitted_on = training_targets(train, val, test, expected)
+    for seed in args.seeds:
+        cfg = family_config(args.family, seed)
+        with open_dict(cfg):
+            cfg.code.sections, cfg.code.slices = False, False     # the head reads the parameters alone
+            cfg.trainer.progress_bar = False
+            if args.epochs is not None:
+                cfg.stages.head.epochs = args.epochs
+        L.seed_everything(seed, workers=True)
+        encoder, head, dynamics = build_components(cfg)
+        initial = {k: v.clone() for k, v in head.state_dict().items()}
+        latents = parameter_codes([generator_parts(cfg)[p.name] for p in ordered], len(train), "geometry",
+                                  head.latent_dim)
+        for target in targets:
+            head.load_state_dict(initial)
+            model = build_model(cfg, data, (encoder, head, dynamics))
+            start = time.perf_counter()
+            with tempfile.TemporaryDirectory() as tmp:
+                fit_head(cfg, model, latents, index, *fitted_on[target], Path(tmp), False, [])
+            variant = f"geometry-{target}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
+            score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
+                             "seconds": time.perf_counter() - start},
+                  cfg, data, model, latents, index)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+    main()
