@@ -803,18 +803,18 @@ def test_expected_head_trains_each_target_on_its_own_parts_in_order():
     sys.path.insert(0, str(ROOT / "experiments"))
     from expected_head import training_targets
 
-    def parts(*names):
-        return [SimpleNamespace(name=name) for name in names]
+    def parts(*names, kind="recorded"):
+        return [SimpleNamespace(name=name, kind=kind) for name in names]
 
     train, val, test = parts("a", "b"), parts("c"), parts("d", "e")
-    expected = parts("a", "b", "c", "d", "e")
+    expected = parts("a", "b", "c", "d", "e", kind="expected")     # the same names: told apart by their kind
     targets = training_targets(train, val, test, expected)
     assert targets["recorded"] == (train, val)
     assert targets["expected"] == (expected[:2], expected[2:3])      # the same parts' expectation, not the test's
     assert targets["expected_test"] == (expected[3:], expected[3:])
     assert training_targets(train, val, test, []) == {"recorded": (train, val)}
     with pytest.raises(ValueError, match="not the training, validation and test parts"):
-        training_targets(train, val, test, parts("a", "c", "b", "d", "e"))
+        training_targets(train, val, test, parts("a", "c", "b", "d", "e", kind="expected"))
 
 
 def test_expected_head_refuses_an_unknown_target_before_any_work(tmp_path):
