@@ -26,7 +26,6 @@ import time
 from pathlib import Path
 
 import lightning as L
-import torch
 from common import score
 from omegaconf import open_dict
 from parameter_codes import generator_parts, parameter_codes
@@ -74,12 +73,15 @@ def main() -> None:
     index = {p.name: i for i, p in enumerate(ordered)}
     generated = cfg.data.generate
     settings = PreprocessSettings.from_config(cfg.data)
-    start = time.perf_counter()
-    expected = [] if targets == ["recorded"] else expected_parts(
-        generated.family, generated.count, generated.seed, ordered, settings, args.draws)["fit"]
-    print(f"expectation of {len(ordered)} parts over {args.draws} draws: {time.perf_counter() - start:.0f} s",
-          flush=True)
+    expected = []
+    if targets != ["recorded"]:
+        start = time.perf_counter()
+        expected = expected_parts(generated.family, generated.count, generated.seed, ordered, settings,
+                                  args.draws)["fit"]
+        print(f"expectation of {len(ordered)} parts over {args.draws} draws: {time.perf_counter() - start:.0f} s",
+              flush=True)
     fitted_on = training_targets(train, val, test, expected)
+    shapes = [generator_parts(cfg)[p.name] for p in ordered]     # the same parts whatever the seed
     for seed in args.seeds:
         cfg = family_config(args.family, seed)
         with open_dict(cfg):
@@ -90,8 +92,7 @@ def main() -> None:
         L.seed_everything(seed, workers=True)
         encoder, head, dynamics = build_components(cfg)
         initial = {k: v.clone() for k, v in head.state_dict().items()}
-        latents = parameter_codes([generator_parts(cfg)[p.name] for p in ordered], len(train), "geometry",
-                                  head.latent_dim)
+        latents = parameter_codes(shapes, len(train), "geometry", head.latent_dim)
         for target in targets:
             head.load_state_dict(initial)
             model = build_model(cfg, data, (encoder, head, dynamics))
@@ -106,5 +107,4 @@ def main() -> None:
 
 if __name__ == "__main__":
     os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
-    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     main()
