@@ -13,9 +13,12 @@ kind of training target:
                  the test parts' generator)
 If `expected` reaches what the dynamic model identified on the test parts' expectation reaches (80.89 % on
 pins), 100 parts' recordings are what limits the head; if it stays where `recorded` is, the head's map is.
+`--input sections+slices` feeds the head what PIPE's own input holds besides the encoder's code instead of the
+parameters: the cloud's cross-section and the mesh's slices, standardised over the training parts as
+`code.sections` and `code.slices` give them, after a code of zeros (no encoder is trained).
 Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
   OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
-      --seeds 0 1 2 --draws 32
+      --seeds 0 1 2 --draws 32                       # --input sections+slices --targets recorded,expected
 """
 from __future__ import annotations
 
@@ -26,17 +29,21 @@ import time
 from pathlib import Path
 
 import lightning as L
+import torch
 from common import score
 from omegaconf import open_dict
 from parameter_codes import generator_parts, parameter_codes
 from twin_oracle import expected_parts, family_config
 
+from pipe.data.batches import stack_clouds, stack_slices
 from pipe.data.prepared import PartData, PreprocessSettings
 from pipe.model import ltv
+from pipe.model.pipe_model import PIPEModel
 from pipe.pipeline import build_components, build_model, load_domain
 from pipe.training.fit import fit_head
 
 TARGETS = ("recorded", "expected", "expected_test")
+INPUTS = ("geometry", "sections+slices")
 
 
 def training_targets(train: list[PartData], val: list[PartData], test: list[PartData],
@@ -53,6 +60,14 @@ def training_targets(train: list[PartData], val: list[PartData], test: list[Part
                       "expected_test": (expected[end:], expected[end:])}
 
 
+def hand_made_codes(model: PIPEModel, parts: list[PartData], code_size: int) -> torch.Tensor:
+    """The parts' input to a head of `model` (built with code.sections and code.slices) with the encoder's code,
+    its first `code_size` numbers, set to zeros: the cross-section and the slices alone tell the parts apart."""
+    codes = model.latent_distribution(stack_clouds(parts), stack_slices(parts))[0].detach().clone()
+    codes[:, :code_size] = 0.0
+    return codes
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
@@ -61,6 +76,7 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=32, help="draws of the unseen conditions per trial")
     ap.add_argument("--epochs", type=int, default=None, help="stage 2's epochs (default: the config's)")
     ap.add_argument("--targets", default=",".join(TARGETS), help=f"comma-separated, of {', '.join(TARGETS)}")
+    ap.add_argument("--input", default="geometry", choices=INPUTS, help="what the head reads of each part")
     args = ap.parse_args()
     targets = args.targets.split(",")
     if unknown := set(targets) - set(TARGETS):
@@ -85,21 +101,25 @@ def main() -> None:
     for seed in args.seeds:
         cfg = family_config(args.family, seed)
         with open_dict(cfg):
-            cfg.code.sections, cfg.code.slices = False, False     # the head reads the parameters alone
+            hand_made = args.input == "sections+slices"
+            cfg.code.sections, cfg.code.slices = hand_made, hand_made     # or the head reads the parameters alone
             cfg.trainer.progress_bar = False
             if args.epochs is not None:
                 cfg.stages.head.epochs = args.epochs
         L.seed_everything(seed, workers=True)
         encoder, head, dynamics = build_components(cfg)
         initial = {k: v.clone() for k, v in head.state_dict().items()}
-        latents = parameter_codes(shapes, len(train), "geometry", head.latent_dim)
+        if hand_made:
+            latents = hand_made_codes(build_model(cfg, data, (encoder, head, dynamics)), ordered, encoder.latent_dim)
+        else:
+            latents = parameter_codes(shapes, len(train), "geometry", head.latent_dim)
         for target in targets:
             head.load_state_dict(initial)
             model = build_model(cfg, data, (encoder, head, dynamics))
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 fit_head(cfg, model, latents, index, *fitted_on[target], Path(tmp), False, [])
-            variant = f"geometry-{target}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
+            variant = f"{args.input}-{target}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
             score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
                              "seconds": time.perf_counter() - start},
                   cfg, data, model, latents, index)

@@ -822,3 +822,30 @@ def test_expected_head_refuses_an_unknown_target_before_any_work(tmp_path):
                            "recorded,bogus"], cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
     assert done.returncode != 0 and "unknown target bogus" in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
+
+
+def test_expected_head_hand_made_input_is_the_cross_section_and_slices_after_a_code_of_zeros(tiny_data, tmp_path):
+    import torch
+
+    from pipe.data.batches import stack_clouds, stack_slices
+    from pipe.model.sections import SECTION_SIZE, SectionCode
+    from pipe.model.slices import SliceCode
+    from pipe.pipeline import build_model, load_domain
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import hand_made_codes
+
+    cfg = smoke_config(tiny_data, tmp_path, "code.sections=true", "code.slices=true")
+    data = load_domain(cfg)
+    model = build_model(cfg, data)
+    train, parts = data.splits["train"], data.splits["train"] + data.splits["val"] + data.splits["test"]
+    width = model.encoder.latent_dim
+    codes = hand_made_codes(model, parts, width)
+    assert codes.shape == (len(parts), model.head.latent_dim)
+    assert not codes[:, :width].any()               # no encoder: the code's part is zeros
+    # the rest standardised over the training parts alone, as code.sections and code.slices give them
+    sections = SectionCode.fitted(stack_clouds(train))(stack_clouds(parts))
+    slices = SliceCode.fitted(stack_slices(train))(stack_slices(parts))
+    assert torch.allclose(codes[:, width:width + SECTION_SIZE], sections)
+    assert torch.allclose(codes[:, width + SECTION_SIZE:], slices.to(codes.dtype))
+    assert not torch.equal(codes[0], codes[-1])      # the parts are told apart by them
