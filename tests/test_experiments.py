@@ -849,3 +849,21 @@ def test_expected_head_hand_made_input_is_the_cross_section_and_slices_after_a_c
     assert torch.allclose(codes[:, width:width + SECTION_SIZE], sections)
     assert torch.allclose(codes[:, width + SECTION_SIZE:], slices.to(codes.dtype))
     assert not torch.equal(codes[0], codes[-1])      # the parts are told apart by them
+
+
+def test_family_twins_count_test_pins_of_a_training_pins_type_and_diameter_and_of_its_length_too():
+    from pipe.synthetic.catalogue import Pin
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from family_twins import twin_counts
+
+    def pin(family, diameter, length):
+        return Pin(f"{family}{diameter}x{length}", family, diameter, length, length / 2)
+
+    train = [pin("dowel", 5.0, 20.0), pin("taper", 6.0, 30.0)]
+    test = [pin("dowel", 5.0, 20.0),        # the same size and length: counted twice
+            pin("dowel", 5.0, 24.0),        # the same size, another length
+            pin("dowel", 6.0, 30.0),        # a taper pin's size, but a dowel: neither
+            pin("taper", 8.0, 30.0)]        # another diameter: neither
+    assert twin_counts(test, train) == (2, 1)
+    assert twin_counts(test, []) == (0, 0)
