@@ -15,7 +15,9 @@ If `expected` reaches what the dynamic model identified on the test parts' expec
 pins), 100 parts' recordings are what limits the head; if it stays where `recorded` is, the head's map is.
 `--input sections+slices` feeds the head what PIPE's own input holds besides the encoder's code instead of the
 parameters: the cloud's cross-section and the mesh's slices, standardised over the training parts as
-`code.sections` and `code.slices` give them, after a code of zeros (no encoder is trained).
+`code.sections` and `code.slices` give them, after a code of zeros (no encoder is trained); with
+`--section-points N` the cross-section is measured on N points sampled from each part's mesh (the pipeline's
+sampler and seed) rather than on its cloud, to see what the cloud's resolution costs on small parts.
 Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
   OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
       --seeds 0 1 2 --draws 32                       # --input sections+slices --targets recorded,expected
@@ -36,9 +38,13 @@ from parameter_codes import generator_parts, parameter_codes
 from twin_oracle import expected_parts, family_config
 
 from pipe.data.batches import stack_clouds, stack_slices
+from pipe.data.dataset import load_dataset
 from pipe.data.prepared import PartData, PreprocessSettings
+from pipe.data.preprocess import cloud_from_mesh
+from pipe.data.spec import load_spec
 from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.sections import SECTION_SIZE, SectionCode
 from pipe.pipeline import build_components, build_model, load_domain
 from pipe.training.fit import fit_head
 
@@ -68,6 +74,23 @@ def hand_made_codes(model: PIPEModel, parts: list[PartData], code_size: int) -> 
     return codes
 
 
+def mesh_clouds(root: Path, parts: list[PartData], points: int, seed: int) -> torch.Tensor:
+    """`points` points sampled from each part's mesh in the dataset at `root` as the pipeline samples its cloud
+    (the same sampler, seed and centre), as one (parts, points, 3) tensor in mm."""
+    spec, meshes = load_spec(root), load_dataset(root, parts=[p.name for p in parts]).parts
+    return torch.stack([torch.from_numpy(cloud_from_mesh(meshes[p.name].mesh_path, spec.mesh_units, points, seed=seed,
+                                                         axis=meshes[p.name].metadata.get("axis", "z")).points)
+                        for p in parts]).float()
+
+
+def with_sections_of(codes: torch.Tensor, clouds: torch.Tensor, train_count: int, code_size: int) -> torch.Tensor:
+    """`codes` (a head's input of code.sections) with its cross-section measured on `clouds` instead, standardised
+    over the first `train_count` of them (the training parts)."""
+    codes = codes.clone()
+    codes[:, code_size:code_size + SECTION_SIZE] = SectionCode.fitted(clouds[:train_count])(clouds)
+    return codes
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
@@ -77,7 +100,11 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=None, help="stage 2's epochs (default: the config's)")
     ap.add_argument("--targets", default=",".join(TARGETS), help=f"comma-separated, of {', '.join(TARGETS)}")
     ap.add_argument("--input", default="geometry", choices=INPUTS, help="what the head reads of each part")
+    ap.add_argument("--section-points", type=int, default=None, metavar="N",
+                    help="with --input sections+slices: the cross-section of N points sampled from each mesh")
     args = ap.parse_args()
+    if args.section_points is not None and args.input != "sections+slices":
+        raise SystemExit("--section-points measures the cross-section the head reads: give --input sections+slices")
     targets = args.targets.split(",")
     if unknown := set(targets) - set(TARGETS):
         raise SystemExit(f"unknown target {', '.join(sorted(unknown))}: the targets are {', '.join(TARGETS)}")
@@ -98,6 +125,8 @@ def main() -> None:
               flush=True)
     fitted_on = training_targets(train, val, test, expected)
     shapes = [generator_parts(cfg)[p.name] for p in ordered]     # the same parts whatever the seed
+    dense = (mesh_clouds(data.dataset_dir, ordered, args.section_points, int(cfg.data.cloud_seed))
+             if args.section_points is not None else None)
     for seed in args.seeds:
         cfg = family_config(args.family, seed)
         with open_dict(cfg):
@@ -111,6 +140,8 @@ def main() -> None:
         initial = {k: v.clone() for k, v in head.state_dict().items()}
         if hand_made:
             latents = hand_made_codes(build_model(cfg, data, (encoder, head, dynamics)), ordered, encoder.latent_dim)
+            if dense is not None:
+                latents = with_sections_of(latents, dense, len(train), encoder.latent_dim)
         else:
             latents = parameter_codes(shapes, len(train), "geometry", head.latent_dim)
         for target in targets:
@@ -119,7 +150,8 @@ def main() -> None:
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 fit_head(cfg, model, latents, index, *fitted_on[target], Path(tmp), False, [])
-            variant = f"{args.input}-{target}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
+            points = f"+section_points={args.section_points}" if args.section_points is not None else ""
+            variant = f"{args.input}-{target}{points}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
             score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
                              "seconds": time.perf_counter() - start},
                   cfg, data, model, latents, index)

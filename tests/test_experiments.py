@@ -817,10 +817,13 @@ def test_expected_head_trains_each_target_on_its_own_parts_in_order():
         training_targets(train, val, test, parts("a", "c", "b", "d", "e", kind="expected"))
 
 
-def test_expected_head_refuses_an_unknown_target_before_any_work(tmp_path):
-    done = subprocess.run([sys.executable, "expected_head.py", str(tmp_path / "rows.jsonl"), "--targets",
-                           "recorded,bogus"], cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
-    assert done.returncode != 0 and "unknown target bogus" in done.stderr and "Traceback" not in done.stderr
+@pytest.mark.parametrize("args, message", [
+    (["--targets", "recorded,bogus"], "unknown target bogus"),
+    (["--section-points", "4096"], "give --input sections+slices")])
+def test_expected_head_refuses_what_it_cannot_run_before_any_work(args, message, tmp_path):
+    done = subprocess.run([sys.executable, "expected_head.py", str(tmp_path / "rows.jsonl"), *args],
+                          cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and message in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
 
 
@@ -867,3 +870,32 @@ def test_family_twins_count_test_pins_of_a_training_pins_type_and_diameter_and_o
             pin("taper", 8.0, 30.0)]        # another diameter: neither
     assert twin_counts(test, train) == (2, 1)
     assert twin_counts(test, []) == (0, 0)
+
+
+def test_expected_head_mesh_clouds_are_the_pipelines_clouds_and_replace_the_cross_section_alone(tiny_data, tmp_path):
+    import torch
+
+    from pipe.data.batches import stack_clouds
+    from pipe.model.sections import SECTION_SIZE, SectionCode
+    from pipe.pipeline import build_model, load_domain
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import hand_made_codes, mesh_clouds, with_sections_of
+
+    cfg = smoke_config(tiny_data, tmp_path, "code.sections=true", "code.slices=true")
+    data = load_domain(cfg)
+    parts = data.splits["train"] + data.splits["test"]
+    # at the pipeline's number of points the mesh's sample is each part's own cloud
+    same = mesh_clouds(data.dataset_dir, parts, int(cfg.data.points), int(cfg.data.cloud_seed))
+    assert torch.allclose(same, stack_clouds(parts), atol=1e-5)
+    dense = mesh_clouds(data.dataset_dir, parts, 4 * int(cfg.data.points), int(cfg.data.cloud_seed))
+    assert dense.shape == (len(parts), 4 * int(cfg.data.points), 3)
+    model = build_model(cfg, data)
+    width, train = model.encoder.latent_dim, len(data.splits["train"])
+    codes = hand_made_codes(model, parts, width)
+    replaced = with_sections_of(codes, dense, train, width)
+    section = slice(width, width + SECTION_SIZE)
+    assert torch.allclose(replaced[:, section], SectionCode.fitted(dense[:train])(dense))
+    assert not torch.allclose(replaced[:, section], codes[:, section])        # another cloud, another cross-section
+    assert torch.equal(replaced[:, :width], codes[:, :width]) and torch.equal(replaced[:, width + SECTION_SIZE:],
+                                                                              codes[:, width + SECTION_SIZE:])
