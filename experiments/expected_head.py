@@ -13,6 +13,10 @@ kind of training target:
                  the test parts' generator)
 If `expected` reaches what the dynamic model identified on the test parts' expectation reaches (80.89 % on
 pins), 100 parts' recordings are what limits the head; if it stays where `recorded` is, the head's map is.
+`--twins K ...` adds, per K, the target `twins=K`: each training and validation part's own recordings pooled
+with those of K twins (`twin_oracle.py`'s: the generator's same part, its trials drawn again), i.e. what
+recording (K + 1) times as many trials per part would teach; the way from `recorded` towards `expected` that
+a user can take.
 `--input sections+slices` feeds the head what PIPE's own input holds besides the encoder's code instead of the
 parameters: the cloud's cross-section and the mesh's slices, standardised over the training parts as
 `code.sections` and `code.slices` give them, after a code of zeros (no encoder is trained); with
@@ -35,7 +39,7 @@ import torch
 from common import score
 from omegaconf import open_dict
 from parameter_codes import generator_parts, parameter_codes
-from twin_oracle import expected_parts, family_config
+from twin_oracle import TWIN_STREAMS, expected_parts, family_config, pooled, twin_parts
 
 from pipe.data.batches import stack_clouds, stack_slices
 from pipe.data.dataset import load_dataset
@@ -64,6 +68,17 @@ def training_targets(train: list[PartData], val: list[PartData], test: list[Part
     split, end = len(train), len(train) + len(val)
     return targets | {"expected": (expected[:split], expected[split:end]),
                       "expected_test": (expected[end:], expected[end:])}
+
+
+def twin_targets(train: list[PartData], val: list[PartData], twins: list[list[PartData]],
+                 counts: list[int]) -> dict[str, tuple[list[PartData], list[PartData]]]:
+    """Per K in `counts` the target `twins=K`: each training and validation part with its own trials followed by
+    those of the first K of `twins` (each the training and validation parts again, in order, drawn anew)."""
+    targets = {}
+    for count in counts:
+        both = pooled([train + val, *twins[:count]])
+        targets[f"twins={count}"] = (both[: len(train)], both[len(train):])
+    return targets
 
 
 def hand_made_codes(model: PIPEModel, parts: list[PartData], code_size: int) -> torch.Tensor:
@@ -100,14 +115,18 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=None, help="stage 2's epochs (default: the config's)")
     ap.add_argument("--targets", default=",".join(TARGETS), help=f"comma-separated, of {', '.join(TARGETS)}")
     ap.add_argument("--input", default="geometry", choices=INPUTS, help="what the head reads of each part")
+    ap.add_argument("--twins", type=int, nargs="*", default=[], metavar="K",
+                    help="also train on each training and validation part's recordings pooled with K twins'")
     ap.add_argument("--section-points", type=int, default=None, metavar="N",
                     help="with --input sections+slices: the cross-section of N points sampled from each mesh")
     args = ap.parse_args()
     if args.section_points is not None and args.input != "sections+slices":
         raise SystemExit("--section-points measures the cross-section the head reads: give --input sections+slices")
-    targets = args.targets.split(",")
+    targets = [target for target in args.targets.split(",") if target]     # none: the twins' targets alone
     if unknown := set(targets) - set(TARGETS):
         raise SystemExit(f"unknown target {', '.join(sorted(unknown))}: the targets are {', '.join(TARGETS)}")
+    if any(count < 1 for count in args.twins):
+        raise SystemExit("--twins counts the twins pooled with a part's own recordings: 1 or more")
     cfg = family_config(args.family, args.seeds[0])
     ltv.set_backend(cfg.simulator)
     data = load_domain(cfg)
@@ -117,13 +136,16 @@ def main() -> None:
     generated = cfg.data.generate
     settings = PreprocessSettings.from_config(cfg.data)
     expected = []
-    if targets != ["recorded"]:
+    if {"expected", "expected_test"} & set(targets):
         start = time.perf_counter()
         expected = expected_parts(generated.family, generated.count, generated.seed, ordered, settings,
                                   args.draws)["fit"]
         print(f"expectation of {len(ordered)} parts over {args.draws} draws: {time.perf_counter() - start:.0f} s",
               flush=True)
     fitted_on = training_targets(train, val, test, expected)
+    twins = [twin_parts(generated.family, generated.count, generated.seed, train + val, settings, TWIN_STREAMS + k)
+             for k in range(max(args.twins, default=0))]
+    fitted_on |= twin_targets(train, val, twins, args.twins)
     shapes = [generator_parts(cfg)[p.name] for p in ordered]     # the same parts whatever the seed
     dense = (mesh_clouds(data.dataset_dir, ordered, args.section_points, int(cfg.data.cloud_seed))
              if args.section_points is not None else None)
@@ -144,7 +166,7 @@ def main() -> None:
                 latents = with_sections_of(latents, dense, len(train), encoder.latent_dim)
         else:
             latents = parameter_codes(shapes, len(train), "geometry", head.latent_dim)
-        for target in targets:
+        for target in targets + [f"twins={count}" for count in args.twins]:
             head.load_state_dict(initial)
             model = build_model(cfg, data, (encoder, head, dynamics))
             start = time.perf_counter()

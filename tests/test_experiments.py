@@ -819,7 +819,7 @@ def test_expected_head_trains_each_target_on_its_own_parts_in_order():
 
 @pytest.mark.parametrize("args, message", [
     (["--targets", "recorded,bogus"], "unknown target bogus"),
-    (["--section-points", "4096"], "give --input sections+slices")])
+    (["--section-points", "4096"], "give --input sections+slices"), (["--twins", "0"], "1 or more")])
 def test_expected_head_refuses_what_it_cannot_run_before_any_work(args, message, tmp_path):
     done = subprocess.run([sys.executable, "expected_head.py", str(tmp_path / "rows.jsonl"), *args],
                           cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
@@ -899,3 +899,25 @@ def test_expected_head_mesh_clouds_are_the_pipelines_clouds_and_replace_the_cros
     assert not torch.allclose(replaced[:, section], codes[:, section])        # another cloud, another cross-section
     assert torch.equal(replaced[:, :width], codes[:, :width]) and torch.equal(replaced[:, width + SECTION_SIZE:],
                                                                               codes[:, width + SECTION_SIZE:])
+
+
+def test_expected_head_twin_targets_pool_each_part_with_its_first_twins_trials():
+    from pipe.data.prepared import PartData
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import twin_targets
+
+    def parts(stream, *names):
+        return [PartData(name, None, [f"{name}:{stream}"], [None]) for name in names]
+
+    train, val = parts("own", "a", "b"), parts("own", "c")
+    twins = [parts(k, "a", "b", "c") for k in (1, 2, 3)]
+    targets = twin_targets(train, val, twins, [1, 3])
+    assert list(targets) == ["twins=1", "twins=3"]
+    one_train, one_val = targets["twins=1"]
+    assert [p.name for p in one_train] == ["a", "b"] and [p.name for p in one_val] == ["c"]
+    assert one_train[1].profiles == ["b:own", "b:1"] and one_val[0].profiles == ["c:own", "c:1"]
+    three_train, _ = targets["twins=3"]
+    assert three_train[0].profiles == ["a:own", "a:1", "a:2", "a:3"]
+    assert len(three_train[0].static_curves) == 4
+    assert twin_targets(train, val, twins, []) == {}
