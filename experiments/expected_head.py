@@ -149,10 +149,10 @@ def main() -> None:
     shapes = [generator_parts(cfg)[p.name] for p in ordered]     # the same parts whatever the seed
     dense = (mesh_clouds(data.dataset_dir, ordered, args.section_points, int(cfg.data.cloud_seed))
              if args.section_points is not None else None)
+    hand_made = args.input == "sections+slices"
     for seed in args.seeds:
         cfg = family_config(args.family, seed)
         with open_dict(cfg):
-            hand_made = args.input == "sections+slices"
             cfg.code.sections, cfg.code.slices = hand_made, hand_made     # or the head reads the parameters alone
             cfg.trainer.progress_bar = False
             if args.epochs is not None:
