@@ -42,7 +42,7 @@ from parameter_codes import generator_parts, parameter_codes
 from twin_oracle import TWIN_STREAMS, expected_parts, family_config, pooled, twin_parts
 
 from pipe.data.batches import stack_clouds, stack_slices
-from pipe.data.dataset import load_dataset
+from pipe.data.dataset import find_mesh
 from pipe.data.prepared import PartData, PreprocessSettings
 from pipe.data.preprocess import cloud_from_mesh
 from pipe.data.spec import load_spec
@@ -92,10 +92,10 @@ def hand_made_codes(model: PIPEModel, parts: list[PartData], code_size: int) -> 
 def mesh_clouds(root: Path, parts: list[PartData], points: int, seed: int) -> torch.Tensor:
     """`points` points sampled from each part's mesh in the dataset at `root` as the pipeline samples its cloud
     (the same sampler, seed and centre), as one (parts, points, 3) tensor in mm."""
-    spec, meshes = load_spec(root), load_dataset(root, parts=[p.name for p in parts]).parts
-    return torch.stack([torch.from_numpy(cloud_from_mesh(meshes[p.name].mesh_path, spec.mesh_units, points, seed=seed,
-                                                         axis=meshes[p.name].metadata.get("axis", "z")).points)
-                        for p in parts]).float()
+    spec = load_spec(root)       # the mesh files alone: the trials are not read
+    return torch.stack([torch.from_numpy(cloud_from_mesh(find_mesh(root / "parts" / p.name), spec.mesh_units, points,
+                                                         seed=seed, axis=spec.parts.get(p.name, {}).get("axis", "z"))
+                                         .points) for p in parts]).float()
 
 
 def with_sections_of(codes: torch.Tensor, clouds: torch.Tensor, train_count: int, code_size: int) -> torch.Tensor:
