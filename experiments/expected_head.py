@@ -21,7 +21,9 @@ a user can take.
 parameters: the cloud's cross-section and the mesh's slices, standardised over the training parts as
 `code.sections` and `code.slices` give them, after a code of zeros (no encoder is trained); with
 `--section-points N` the cross-section is measured on N points sampled from each part's mesh (the pipeline's
-sampler and seed) rather than on its cloud, to see what the cloud's resolution costs on small parts.
+sampler and seed) rather than on its cloud, to see what the cloud's resolution costs on small parts; with
+`--with-parameters NAME,...` (or `all`) the named generator parameters, standardised as `geometry`'s, fill the
+first numbers of the code of zeros, to see which of them the hand-made input lacks.
 Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
   OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
       --seeds 0 1 2 --draws 32                       # --input sections+slices --targets recorded,expected
@@ -38,7 +40,7 @@ import lightning as L
 import torch
 from common import score
 from omegaconf import open_dict
-from parameter_codes import generator_parts, parameter_codes
+from parameter_codes import generator_parts, parameter_codes, shape_parameters
 from twin_oracle import TWIN_STREAMS, expected_parts, family_config, pooled, twin_parts
 
 from pipe.data.batches import stack_clouds, stack_slices
@@ -106,6 +108,14 @@ def with_sections_of(codes: torch.Tensor, clouds: torch.Tensor, train_count: int
     return codes
 
 
+def with_parameters(codes: torch.Tensor, parameters: torch.Tensor) -> torch.Tensor:
+    """`codes` (a head's input whose first numbers are a code of zeros) with `parameters` (parts, k), k at most
+    the code's size, in its first k numbers."""
+    codes = codes.clone()
+    codes[:, : parameters.shape[1]] = parameters
+    return codes
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
@@ -119,9 +129,13 @@ def main() -> None:
                     help="also train on each training and validation part's recordings pooled with K twins'")
     ap.add_argument("--section-points", type=int, default=None, metavar="N",
                     help="with --input sections+slices: the cross-section of N points sampled from each mesh")
+    ap.add_argument("--with-parameters", default="", metavar="NAME,...",
+                    help="with --input sections+slices: these generator parameters (or all) in the code's place")
     args = ap.parse_args()
     if args.section_points is not None and args.input != "sections+slices":
         raise SystemExit("--section-points measures the cross-section the head reads: give --input sections+slices")
+    if args.with_parameters and args.input != "sections+slices":
+        raise SystemExit("--with-parameters fills the hand-made input's code of zeros: give --input sections+slices")
     targets = [target for target in args.targets.split(",") if target]     # none: the twins' targets alone
     if unknown := set(targets) - set(TARGETS):
         raise SystemExit(f"unknown target {', '.join(sorted(unknown))}: the targets are {', '.join(TARGETS)}")
@@ -133,6 +147,12 @@ def main() -> None:
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
     ordered = train + val + test
     index = {p.name: i for i, p in enumerate(ordered)}
+    shapes = [generator_parts(cfg)[p.name] for p in ordered]     # the same parts whatever the seed
+    known = list(shape_parameters(shapes[0]))
+    chosen = known if args.with_parameters == "all" else [n for n in args.with_parameters.split(",") if n]
+    if unknown := set(chosen) - set(known):
+        raise SystemExit(f"--with-parameters {', '.join(sorted(unknown))}: not a parameter of these parts "
+                         f"({', '.join(known)})")
     generated = cfg.data.generate
     settings = PreprocessSettings.from_config(cfg.data)
     expected = []
@@ -146,7 +166,6 @@ def main() -> None:
     twins = [twin_parts(generated.family, generated.count, generated.seed, train + val, settings, TWIN_STREAMS + k)
              for k in range(max(args.twins, default=0))]
     fitted_on |= twin_targets(train, val, twins, args.twins)
-    shapes = [generator_parts(cfg)[p.name] for p in ordered]     # the same parts whatever the seed
     dense = (mesh_clouds(data.dataset_dir, ordered, args.section_points, int(cfg.data.cloud_seed))
              if args.section_points is not None else None)
     hand_made = args.input == "sections+slices"
@@ -164,6 +183,10 @@ def main() -> None:
             latents = hand_made_codes(build_model(cfg, data, (encoder, head, dynamics)), ordered, encoder.latent_dim)
             if dense is not None:
                 latents = with_sections_of(latents, dense, len(train), encoder.latent_dim)
+            if chosen:
+                without = tuple(name for name in known if name not in chosen)
+                latents = with_parameters(latents, parameter_codes(shapes, len(train), "geometry",
+                                                                   encoder.latent_dim, without))
         else:
             latents = parameter_codes(shapes, len(train), "geometry", head.latent_dim)
         for target in targets + [f"twins={count}" for count in args.twins]:
@@ -173,6 +196,7 @@ def main() -> None:
             with tempfile.TemporaryDirectory() as tmp:
                 fit_head(cfg, model, latents, index, *fitted_on[target], Path(tmp), False, [])
             points = f"+section_points={args.section_points}" if args.section_points is not None else ""
+            points += f"+parameters={args.with_parameters}" if chosen else ""
             variant = f"{args.input}-{target}{points}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
             score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
                              "seconds": time.perf_counter() - start},

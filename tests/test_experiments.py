@@ -819,7 +819,8 @@ def test_expected_head_trains_each_target_on_its_own_parts_in_order():
 
 @pytest.mark.parametrize("args, message", [
     (["--targets", "recorded,bogus"], "unknown target bogus"),
-    (["--section-points", "4096"], "give --input sections+slices"), (["--twins", "0"], "1 or more")])
+    (["--section-points", "4096"], "give --input sections+slices"), (["--twins", "0"], "1 or more"),
+    (["--with-parameters", "taper"], "give --input sections+slices")])
 def test_expected_head_refuses_what_it_cannot_run_before_any_work(args, message, tmp_path):
     done = subprocess.run([sys.executable, "expected_head.py", str(tmp_path / "rows.jsonl"), *args],
                           cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
@@ -852,6 +853,19 @@ def test_expected_head_hand_made_input_is_the_cross_section_and_slices_after_a_c
     assert torch.allclose(codes[:, width:width + SECTION_SIZE], sections)
     assert torch.allclose(codes[:, width + SECTION_SIZE:], slices.to(codes.dtype))
     assert not torch.equal(codes[0], codes[-1])      # the parts are told apart by them
+
+
+def test_expected_head_with_parameters_fills_the_code_of_zeros_and_leaves_the_rest():
+    import torch
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import with_parameters
+
+    codes = torch.cat([torch.zeros(3, 4), torch.arange(6.0).view(3, 2)], dim=1)    # a code of 4 zeros, then 2
+    parameters = torch.tensor([[1.0, -1.0], [2.0, -2.0], [3.0, -3.0]])
+    filled = with_parameters(codes, parameters)
+    assert torch.equal(filled[:, :2], parameters) and not filled[:, 2:4].any()
+    assert torch.equal(filled[:, 4:], codes[:, 4:]) and not codes[:, :4].any()        # the input is not changed
 
 
 def test_family_twins_count_test_pins_of_a_training_pins_type_and_diameter_and_of_its_length_too():
