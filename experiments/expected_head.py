@@ -23,7 +23,9 @@ parameters: the cloud's cross-section and the mesh's slices, standardised over t
 `--section-points N` the cross-section is measured on N points sampled from each part's mesh (the pipeline's
 sampler and seed) rather than on its cloud, to see what the cloud's resolution costs on small parts; with
 `--with-parameters NAME,...` (or `all`) the named generator parameters, standardised as `geometry`'s, fill the
-first numbers of the code of zeros, to see which of them the hand-made input lacks.
+first numbers of the code of zeros, to see which of them the hand-made input lacks; with `--components K` the
+hand-made input is replaced by its first K principal components over the training parts, each standardised
+over them, in the code's place (zeros after), to see whether a compact input of the same measures does better.
 Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
   OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
       --seeds 0 1 2 --draws 32                       # --input sections+slices --targets recorded,expected
@@ -40,7 +42,7 @@ import lightning as L
 import torch
 from common import score
 from omegaconf import open_dict
-from parameter_codes import generator_parts, parameter_codes, shape_parameters
+from parameter_codes import generator_parts, parameter_codes, principal_codes, shape_parameters
 from twin_oracle import TWIN_STREAMS, expected_parts, family_config, pooled, twin_parts
 
 from pipe.data.batches import stack_clouds, stack_slices
@@ -116,6 +118,15 @@ def with_parameters(codes: torch.Tensor, parameters: torch.Tensor) -> torch.Tens
     return codes
 
 
+def principal_input(codes: torch.Tensor, train_count: int, code_size: int, components: int) -> torch.Tensor:
+    """`codes` (a hand-made input: a code of `code_size` zeros, then the measures) as the measures' first
+    `components` principal components over the first `train_count` parts (the training parts), each standardised
+    over them, in the code's place, zeros after."""
+    compact = torch.zeros_like(codes)
+    compact[:, :components] = principal_codes(codes[:, code_size:], train_count, components)
+    return compact
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
@@ -131,17 +142,25 @@ def main() -> None:
                     help="with --input sections+slices: the cross-section of N points sampled from each mesh")
     ap.add_argument("--with-parameters", default="", metavar="NAME,...",
                     help="with --input sections+slices: these generator parameters (or all) in the code's place")
+    ap.add_argument("--components", type=int, default=None, metavar="K",
+                    help="with --input sections+slices: its first K principal components instead")
     args = ap.parse_args()
     if args.section_points is not None and args.input != "sections+slices":
         raise SystemExit("--section-points measures the cross-section the head reads: give --input sections+slices")
     if args.with_parameters and args.input != "sections+slices":
         raise SystemExit("--with-parameters fills the hand-made input's code of zeros: give --input sections+slices")
+    if args.components is not None and (args.input != "sections+slices" or args.with_parameters
+                                        or args.components < 1):
+        raise SystemExit("--components K compacts the hand-made input: give --input sections+slices, no "
+                         "--with-parameters, and K of 1 or more")
     targets = [target for target in args.targets.split(",") if target]     # none: the twins' targets alone
     if unknown := set(targets) - set(TARGETS):
         raise SystemExit(f"unknown target {', '.join(sorted(unknown))}: the targets are {', '.join(TARGETS)}")
     if any(count < 1 for count in args.twins):
         raise SystemExit("--twins counts the twins pooled with a part's own recordings: 1 or more")
     cfg = family_config(args.family, args.seeds[0])
+    if args.components is not None and args.components > cfg.encoder.latent_dim:
+        raise SystemExit(f"--components {args.components}: at most the code's size, {cfg.encoder.latent_dim}")
     ltv.set_backend(cfg.simulator)
     data = load_domain(cfg)
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
@@ -183,6 +202,8 @@ def main() -> None:
             latents = hand_made_codes(build_model(cfg, data, (encoder, head, dynamics)), ordered, encoder.latent_dim)
             if dense is not None:
                 latents = with_sections_of(latents, dense, len(train), encoder.latent_dim)
+            if args.components is not None:
+                latents = principal_input(latents, len(train), encoder.latent_dim, args.components)
             if chosen:
                 without = tuple(name for name in known if name not in chosen)
                 latents = with_parameters(latents, parameter_codes(shapes, len(train), "geometry",
@@ -197,6 +218,7 @@ def main() -> None:
                 fit_head(cfg, model, latents, index, *fitted_on[target], Path(tmp), False, [])
             points = f"+section_points={args.section_points}" if args.section_points is not None else ""
             points += f"+parameters={args.with_parameters}" if chosen else ""
+            points += f"+components={args.components}" if args.components is not None else ""
             variant = f"{args.input}-{target}{points}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
             score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
                              "seconds": time.perf_counter() - start},

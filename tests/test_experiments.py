@@ -820,7 +820,9 @@ def test_expected_head_trains_each_target_on_its_own_parts_in_order():
 @pytest.mark.parametrize("args, message", [
     (["--targets", "recorded,bogus"], "unknown target bogus"),
     (["--section-points", "4096"], "give --input sections+slices"), (["--twins", "0"], "1 or more"),
-    (["--with-parameters", "taper"], "give --input sections+slices")])
+    (["--with-parameters", "taper"], "give --input sections+slices"),
+    (["--components", "5"], "give --input sections+slices"),
+    (["--input", "sections+slices", "--components", "0"], "K of 1 or more")])
 def test_expected_head_refuses_what_it_cannot_run_before_any_work(args, message, tmp_path):
     done = subprocess.run([sys.executable, "expected_head.py", str(tmp_path / "rows.jsonl"), *args],
                           cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
@@ -866,6 +868,28 @@ def test_expected_head_with_parameters_fills_the_code_of_zeros_and_leaves_the_re
     filled = with_parameters(codes, parameters)
     assert torch.equal(filled[:, :2], parameters) and not filled[:, 2:4].any()
     assert torch.equal(filled[:, 4:], codes[:, 4:]) and not codes[:, :4].any()        # the input is not changed
+
+
+def test_expected_head_principal_input_is_the_measures_standardised_components_in_the_codes_place():
+    import torch
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import principal_input
+
+    generator = torch.Generator().manual_seed(0)
+    measures = torch.randn(12, 3, generator=generator) @ torch.tensor([[3.0, 0.0, 0.0], [1.0, 1.0, 0.0],
+                                                                       [0.0, 0.0, 0.1]])
+    codes = torch.cat([torch.zeros(12, 4), measures], dim=1)       # a code of 4 zeros, then 3 measures
+    compact = principal_input(codes, 8, 4, 2)                      # the first 8 parts are the training parts
+    assert compact.shape == codes.shape and not compact[:, 2:].any()
+    train = compact[:8, :2].double()
+    assert torch.allclose(train.mean(0), torch.zeros(2, dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(train.std(0), torch.ones(2, dtype=torch.float64), atol=1e-5)
+    # the components are the training measures' principal directions: the largest first, orthogonal
+    centred = measures[:8].double() - measures[:8].double().mean(0)
+    _, singular, directions = torch.linalg.svd(centred, full_matrices=False)
+    expected = (measures.double() - measures[:8].double().mean(0)) @ directions[:2].T / (singular[:2] / 7 ** 0.5)
+    assert torch.allclose(compact[:, :2].double().abs(), expected.abs(), atol=1e-4)    # up to each one's sign
 
 
 def test_family_twins_count_test_pins_of_a_training_pins_type_and_diameter_and_of_its_length_too():
