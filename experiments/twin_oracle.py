@@ -15,6 +15,8 @@ recordings, as every method is:
   identified_expected_fit=D   the identification fitted on the expected_fit trials: about the best this
                       dynamic model can do from the part
 The expectations do not depend on the seed (their rows carry none); the identifications' random starts do.
+An `identified_expected_fit` row also holds, per part, the fit's FIT(F) on the expectation it was fitted to
+(`fitted_on`), its force loss and whether it converged; `--only PART ...` runs some test parts alone.
 
 Rows (the domain's FIT(F) and each part's) are printed and appended to OUT as JSON lines; `--table`
 summarises them. Usage (the family's test parts as the learning curve splits them; two worker processes):
@@ -126,6 +128,13 @@ def pooled(twins: list[list[PartData]]) -> list[PartData]:
                     static_curves=[s for twin in same for s in twin.static_curves]) for same in zip(*twins)]
 
 
+def only_parts(test: list[PartData], names: list[str], family: str) -> list[PartData]:
+    """The test parts named in `names`, in the split's order; a name that is not a test part is refused."""
+    if unknown := set(names) - {p.name for p in test}:
+        raise SystemExit(f"--only {', '.join(sorted(unknown))}: not a test part of {family}")
+    return [p for p in test if p.name in names]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
@@ -138,6 +147,7 @@ def main() -> None:
     ap.add_argument("--identify-expected", action="store_true",
                     help="with --expected: also the oracle identified on the FIT-weighted expectation")
     ap.add_argument("--skip-own", action="store_true", help="leave out the oracle on the parts' own recordings")
+    ap.add_argument("--only", nargs="+", default=None, metavar="PART", help="these test parts alone")
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--parts", action="store_true", help="with --table: each part's FIT(F) per fit too")
     args = ap.parse_args()
@@ -151,6 +161,8 @@ def main() -> None:
     ltv.set_backend(cfg.simulator)
     data = load_domain(cfg)
     test = data.splits["test"]
+    if args.only is not None:
+        test = only_parts(test, args.only, args.family)
     generated = cfg.data.generate
     preprocessing = PreprocessSettings.from_config(cfg.data)
     twins = [twin_parts(generated.family, generated.count, generated.seed, test, preprocessing, TWIN_STREAMS + k)
@@ -188,6 +200,11 @@ def main() -> None:
             result = evaluate_methods(scored, test, ["oracle"])["oracle"]
             row = {"family": args.family, "seed": seed, "fit": name, "fit_F": result.domain["fit_F"],
                    "parts": {p: m["fit_F"] for p, m in result.per_part.items()}}
+            if name.startswith("identified_expected"):       # also: its FIT(F) on what it was fitted to
+                fitted_on = evaluate_methods(scored, expected["fit"], ["oracle"])["oracle"]
+                row |= {"fitted_on": {p: m["fit_F"] for p, m in fitted_on.per_part.items()},
+                        "loss": {p: fit.loss for p, fit in fitted.items()},
+                        "converged": {p: fit.converged for p, fit in fitted.items()}}
             append_row(args.out, row)
             print(args.family, seed, name, f"{row['fit_F']:.2f}", flush=True)
 

@@ -785,6 +785,18 @@ def test_twin_oracle_twins_and_expectation_are_the_generators_same_parts_and_mot
             assert not np.allclose(predicted.force, measured.force, atol=0.05)
 
 
+def test_twin_oracle_only_keeps_the_named_test_parts_in_the_splits_order_and_refuses_others():
+    from types import SimpleNamespace
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from twin_oracle import only_parts
+
+    test = [SimpleNamespace(name=name) for name in ("rect_0003", "rect_0010", "rect_0018")]
+    assert [p.name for p in only_parts(test, ["rect_0018", "rect_0010"], "rect")] == ["rect_0010", "rect_0018"]
+    with pytest.raises(SystemExit, match="--only rect_0099: not a test part of rect"):
+        only_parts(test, ["rect_0010", "rect_0099"], "rect")
+
+
 def test_twin_oracle_table_gives_each_fit_over_the_seeds_and_the_median_part(tmp_path):
     rows = [{"family": "pins", "seed": seed, "fit": fit, "fit_F": value, "parts": parts}
             for seed, fit, value, parts in [
