@@ -884,6 +884,7 @@ def test_expected_head_with_parameters_fills_the_code_of_zeros_and_leaves_the_re
 
 def test_expected_head_principal_input_is_the_measures_standardised_components_in_the_codes_place():
     import torch
+    from sklearn.decomposition import PCA
 
     sys.path.insert(0, str(ROOT / "experiments"))
     from expected_head import principal_input
@@ -897,11 +898,10 @@ def test_expected_head_principal_input_is_the_measures_standardised_components_i
     train = compact[:8, :2].double()
     assert torch.allclose(train.mean(0), torch.zeros(2, dtype=torch.float64), atol=1e-6)
     assert torch.allclose(train.std(0), torch.ones(2, dtype=torch.float64), atol=1e-5)
-    # the components are the training measures' principal directions: the largest first, orthogonal
-    centred = measures[:8].double() - measures[:8].double().mean(0)
-    _, singular, directions = torch.linalg.svd(centred, full_matrices=False)
-    expected = (measures.double() - measures[:8].double().mean(0)) @ directions[:2].T / (singular[:2] / 7 ** 0.5)
-    assert torch.allclose(compact[:, :2].double().abs(), expected.abs(), atol=1e-4)    # up to each one's sign
+    # scikit-learn's principal components of the training measures, the largest first, each over its spread
+    pca = PCA(n_components=2).fit(measures[:8].numpy())
+    expected = torch.from_numpy(pca.transform(measures.numpy()) / pca.explained_variance_ ** 0.5)
+    assert torch.allclose(compact[:, :2].double().abs(), expected.double().abs(), atol=1e-4)  # up to each one's sign
 
 
 def test_family_twins_count_test_pins_of_a_training_pins_type_and_diameter_and_of_its_length_too():
