@@ -161,17 +161,18 @@ def main() -> None:
     cfg = family_config(args.family, args.seeds[0])
     if args.components is not None and args.components > cfg.encoder.latent_dim:
         raise SystemExit(f"--components {args.components}: at most the code's size, {cfg.encoder.latent_dim}")
+    generator = generator_parts(cfg)      # the parts' parameters alone: neither meshes nor trials
+    known = list(shape_parameters(next(iter(generator.values()))))
+    chosen = known if args.with_parameters == "all" else [n for n in args.with_parameters.split(",") if n]
+    if unknown := set(chosen) - set(known):
+        raise SystemExit(f"--with-parameters {', '.join(sorted(unknown))}: not a parameter of these parts "
+                         f"({', '.join(known)})")
     ltv.set_backend(cfg.simulator)
     data = load_domain(cfg)
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
     ordered = train + val + test
     index = {p.name: i for i, p in enumerate(ordered)}
-    shapes = [generator_parts(cfg)[p.name] for p in ordered]     # the same parts whatever the seed
-    known = list(shape_parameters(shapes[0]))
-    chosen = known if args.with_parameters == "all" else [n for n in args.with_parameters.split(",") if n]
-    if unknown := set(chosen) - set(known):
-        raise SystemExit(f"--with-parameters {', '.join(sorted(unknown))}: not a parameter of these parts "
-                         f"({', '.join(known)})")
+    shapes = [generator[p.name] for p in ordered]     # the same parts whatever the seed
     generated = cfg.data.generate
     settings = PreprocessSettings.from_config(cfg.data)
     expected = []

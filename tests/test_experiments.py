@@ -833,6 +833,7 @@ def test_expected_head_trains_each_target_on_its_own_parts_in_order():
     (["--targets", "recorded,bogus"], "unknown target bogus"),
     (["--section-points", "4096"], "give --input sections+slices"), (["--twins", "0"], "1 or more"),
     (["--with-parameters", "taper"], "give --input sections+slices"),
+    (["--input", "sections+slices", "--with-parameters", "taper,bogus"], "bogus: not a parameter of these parts"),
     (["--components", "5"], "give --input sections+slices"),
     (["--input", "sections+slices", "--components", "0"], "K of 1 or more")])
 def test_expected_head_refuses_what_it_cannot_run_before_any_work(args, message, tmp_path):
