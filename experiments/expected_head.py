@@ -25,7 +25,9 @@ sampler and seed) rather than on its cloud, to see what the cloud's resolution c
 `--with-parameters NAME,...` (or `all`) the named generator parameters, standardised as `geometry`'s, fill the
 first numbers of the code of zeros, to see which of them the hand-made input lacks; with `--components K` the
 hand-made input is replaced by its first K principal components over the training parts, each standardised
-over them, in the code's place (zeros after), to see whether a compact input of the same measures does better.
+over them, in the code's place (zeros after), to see whether a compact input of the same measures does better;
+with `--lead-in` the log of the lead-in's length measured on each mesh (`lead_in.py`), standardised over the
+training parts, fills the code's first number, to see whether that measure gives what the parameters give.
 Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
   OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
       --seeds 0 1 2 --draws 32                       # --input sections+slices --targets recorded,expected
@@ -39,8 +41,10 @@ import time
 from pathlib import Path
 
 import lightning as L
+import numpy as np
 import torch
 from common import score
+from lead_in import dataset_lead_ins
 from omegaconf import open_dict
 from parameter_codes import generator_parts, parameter_codes, principal_codes, shape_parameters
 from twin_oracle import TWIN_STREAMS, expected_parts, family_config, pooled, twin_parts
@@ -118,6 +122,12 @@ def with_parameters(codes: torch.Tensor, parameters: torch.Tensor) -> torch.Tens
     return codes
 
 
+def standardised_log(values: np.ndarray, train_count: int) -> torch.Tensor:
+    """(parts, 1) the logs of positive `values`, standardised over the first `train_count` (the training parts)."""
+    logs = torch.from_numpy(np.log(values)).float()
+    return ((logs - logs[:train_count].mean()) / logs[:train_count].std()).unsqueeze(1)
+
+
 def principal_input(codes: torch.Tensor, train_count: int, code_size: int, components: int) -> torch.Tensor:
     """`codes` (a hand-made input: a code of `code_size` zeros, then the measures) as the measures' first
     `components` principal components over the first `train_count` parts (the training parts), each standardised
@@ -144,6 +154,8 @@ def main() -> None:
                     help="with --input sections+slices: these generator parameters (or all) in the code's place")
     ap.add_argument("--components", type=int, default=None, metavar="K",
                     help="with --input sections+slices: its first K principal components instead")
+    ap.add_argument("--lead-in", action="store_true",
+                    help="with --input sections+slices: the lead-in measured on the mesh in the code's place")
     args = ap.parse_args()
     if args.section_points is not None and args.input != "sections+slices":
         raise SystemExit("--section-points measures the cross-section the head reads: give --input sections+slices")
@@ -153,6 +165,9 @@ def main() -> None:
                                         or args.components < 1):
         raise SystemExit("--components K compacts the hand-made input: give --input sections+slices, no "
                          "--with-parameters, and K of 1 or more")
+    if args.lead_in and (args.input != "sections+slices" or args.with_parameters or args.components is not None):
+        raise SystemExit("--lead-in fills the hand-made input's code of zeros: give --input sections+slices, and "
+                         "neither --with-parameters nor --components")
     targets = [target for target in args.targets.split(",") if target]     # none: the twins' targets alone
     if unknown := set(targets) - set(TARGETS):
         raise SystemExit(f"unknown target {', '.join(sorted(unknown))}: the targets are {', '.join(TARGETS)}")
@@ -189,6 +204,8 @@ def main() -> None:
     dense = (mesh_clouds(data.dataset_dir, ordered, args.section_points, int(cfg.data.cloud_seed))
              if args.section_points is not None else None)
     hand_made = args.input == "sections+slices"
+    lead_in = standardised_log(dataset_lead_ins(data.dataset_dir, [p.name for p in ordered]), len(train)) \
+        if args.lead_in else None
     for seed in args.seeds:
         cfg = family_config(args.family, seed)
         with open_dict(cfg):
@@ -209,6 +226,8 @@ def main() -> None:
                 without = tuple(name for name in known if name not in chosen)
                 latents = with_parameters(latents, parameter_codes(shapes, len(train), "geometry",
                                                                    encoder.latent_dim, without))
+            if lead_in is not None:
+                latents = with_parameters(latents, lead_in)
         else:
             latents = parameter_codes(shapes, len(train), "geometry", head.latent_dim)
         for target in targets + [f"twins={count}" for count in args.twins]:
@@ -220,6 +239,7 @@ def main() -> None:
             points = f"+section_points={args.section_points}" if args.section_points is not None else ""
             points += f"+parameters={args.with_parameters}" if chosen else ""
             points += f"+components={args.components}" if args.components is not None else ""
+            points += "+lead_in" if args.lead_in else ""
             variant = f"{args.input}-{target}{points}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
             score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
                              "seconds": time.perf_counter() - start},

@@ -835,7 +835,9 @@ def test_expected_head_trains_each_target_on_its_own_parts_in_order():
     (["--with-parameters", "taper"], "give --input sections+slices"),
     (["--input", "sections+slices", "--with-parameters", "taper,bogus"], "bogus: not a parameter of these parts"),
     (["--components", "5"], "give --input sections+slices"),
-    (["--input", "sections+slices", "--components", "0"], "K of 1 or more")])
+    (["--input", "sections+slices", "--components", "0"], "K of 1 or more"),
+    (["--lead-in"], "give --input sections+slices"),
+    (["--input", "sections+slices", "--lead-in", "--with-parameters", "taper"], "neither --with-parameters")])
 def test_expected_head_refuses_what_it_cannot_run_before_any_work(args, message, tmp_path):
     done = subprocess.run([sys.executable, "expected_head.py", str(tmp_path / "rows.jsonl"), *args],
                           cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
@@ -881,6 +883,51 @@ def test_expected_head_with_parameters_fills_the_code_of_zeros_and_leaves_the_re
     filled = with_parameters(codes, parameters)
     assert torch.equal(filled[:, :2], parameters) and not filled[:, 2:4].any()
     assert torch.equal(filled[:, 4:], codes[:, 4:]) and not codes[:, :4].any()        # the input is not changed
+
+
+@pytest.mark.parametrize("family, diameter, chamfer", [("dowel", 4.0, 0.6), ("taper", 4.0, 0.12),
+                                                       ("taper", 16.0, 0.9), ("dowel", 20.0, 3.5)])
+def test_lead_in_is_the_pins_chamfer_length_to_within_the_grids_step(family, diameter, chamfer):
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from lead_in import GRID_RATIO, lead_in_length
+
+    from pipe.synthetic.catalogue import Pin
+    from pipe.synthetic.meshes import pin_mesh
+
+    pin = Pin("p", family, diameter, 5 * diameter, 2.5 * diameter, taper=1 / 50 if family == "taper" else 0.0,
+              chamfer=chamfer)
+    measured = lead_in_length(pin_mesh(pin))
+    assert chamfer <= measured <= chamfer * GRID_RATIO ** 2     # the first grid depth past the chamfer's end
+    open_mesh = pin_mesh(pin)
+    open_mesh.update_faces(open_mesh.face_normals[:, 2] > -0.9)    # the flat tip cut away: not watertight
+    assert not open_mesh.is_watertight and lead_in_length(open_mesh) == measured
+
+
+def test_lead_in_of_a_part_without_a_chamfer_is_the_grids_first_depth_and_of_a_cone_its_reach():
+    import trimesh
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from lead_in import FIRST_DEPTH_MM, REACH_MM, lead_in_length, section_widths
+
+    box = trimesh.creation.box(extents=(8.0, 3.0, 20.0))
+    assert lead_in_length(box) == FIRST_DEPTH_MM
+    cone = trimesh.creation.cone(radius=10.0, height=20.0)     # apex up: the width shrinks from the base
+    cone.apply_transform(trimesh.transformations.rotation_matrix(math.pi, [1.0, 0.0, 0.0]))   # apex down
+    assert math.isclose(lead_in_length(cone), REACH_MM, rel_tol=0.05)
+    widths = section_widths(box, [1.0, 19.0, 25.0])
+    assert widths[:2] == pytest.approx([8.0, 8.0]) and widths[2] == 0.0       # beyond the part: nothing
+
+
+def test_expected_head_standardised_log_is_standardised_over_the_training_parts():
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import standardised_log
+
+    values = np.array([1.0, math.e, math.e ** 2, 100.0])
+    logs = standardised_log(values, 3)
+    assert logs.shape == (4, 1) and logs[:3, 0].tolist() == pytest.approx([-1.0, 0.0, 1.0])
+    assert logs[3, 0].item() == pytest.approx(math.log(100.0) - 1.0)
 
 
 def test_expected_head_principal_input_is_the_measures_standardised_components_in_the_codes_place():
