@@ -5,13 +5,14 @@ lead-in, k e^2 / (2 lead): a short chamfer makes a tall, narrow peak. On pins at
 fed the generator's parameters beats the head fed PIPE's hand-made input (the cloud's cross-section and the
 mesh's slices) on the small pins, whose chamfers are 0.1 to 1 mm long, below the 0.5 mm of the slices' first
 depth and the spacing of a 1024-point cloud; a ridge fit from the hand-made input to log(lead-in / diameter)
-within each kind of pin leaves 31 % of its variance on the test parts (docs/experiments.md, "The lead-in
+leaves part of its variance on the test parts (docs/experiments.md, "The lead-in
 measured on the mesh"). This measure reads the lead-in off the mesh itself: the section's width (its extent
 in the plane, `trimesh.intersections.mesh_multiplane` on a geometric grid of depths from the lowest point,
 the mating end) grows fast along a chamfer and slowly or not at all beyond it; the lead-in is the first depth
 from which it grows slower than SLOPE mm per mm (a 45-degree chamfer's width grows 2, a 1:50 taper's 0.02).
-Print it beside the generator's lead-in for a generated pins family's parts:
-  python experiments/lead_in.py data/family_pins_130_seed0 --count 130 --seed 0
+Print it beside the generator's lead-in for the learning curve's pins, and a ridge probe's R^2 of the lead-in
+from the hand-made input without and with it:
+  python experiments/lead_in.py
 """
 from __future__ import annotations
 
@@ -69,22 +70,48 @@ def dataset_lead_ins(root: str | Path, names: list[str]) -> np.ndarray:
 
 
 def main() -> None:
+    """The learning curve's pins (seed 0's domain): each part's measured lead-in beside the generator's, then how
+    well a ridge probe (`code_probe.probe`: fitted on the training and validation parts, R^2 on the test parts)
+    reads the lead-in from the hand-made input, without and with the measure."""
+    import lightning as L
+    from code_probe import probe
+    from expected_head import hand_made_codes
+    from omegaconf import open_dict
+    from twin_oracle import family_config
+
+    from pipe.pipeline import build_components, build_model, load_domain
     from pipe.synthetic.families import family_parts
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset", help="a generated pins family's dataset folder")
-    ap.add_argument("--count", type=int, default=130)
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
-    parts = family_parts("pins", args.count, args.seed)
-    names = sorted(parts)
-    measured = dataset_lead_ins(args.dataset, names)
-    drawn = np.array([parts[name].lead_in for name in names])
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
+    cfg = family_config("pins", 0)
+    with open_dict(cfg):
+        cfg.code.sections, cfg.code.slices = True, True
+    data = load_domain(cfg)
+    fitted, test = data.splits["train"] + data.splits["val"], data.splits["test"]
+    names = [p.name for p in fitted + test]
+    drawn = family_parts("pins", cfg.data.generate.count, cfg.data.generate.seed)
+    measured = dataset_lead_ins(data.dataset_dir, names)
+    true = np.array([drawn[name].lead_in for name in names])
     print("part | kind | diameter | generator's lead-in | measured")
-    for name, true, seen in zip(names, drawn, measured):
-        print(f"{name} | {parts[name].family} | {parts[name].diameter:g} | {true:.3f} | {seen:.3f}")
-    error = np.log(measured / drawn)
+    for name, value, seen in zip(names, true, measured):
+        print(f"{name} | {drawn[name].family} | {drawn[name].diameter:g} | {value:.3f} | {seen:.3f}")
+    error = np.log(measured / true)
     print(f"log(measured / generator's): median {np.median(error):+.3f}, from {error.min():+.3f} to {error.max():+.3f}")
+    L.seed_everything(0)
+    encoder, head, dynamics = build_components(cfg)
+    model = build_model(cfg, data, (encoder, head, dynamics))
+    hand_made = hand_made_codes(model, fitted + test, encoder.latent_dim)[:, encoder.latent_dim:].numpy()
+    with_measure = np.column_stack([hand_made, np.log(measured)])
+    diameter = np.log([drawn[name].diameter for name in names])
+    split = len(fitted)
+    share = np.log(true) - diameter
+    taper = np.array([drawn[name].family == "taper" for name in names])
+    kind_mean = np.where(taper, share[:split][taper[:split]].mean(), share[:split][~taper[:split]].mean())
+    print("R^2 on the test parts | from the hand-made input | and the measured lead-in")
+    for label, values in (("log lead-in", np.log(true)), ("log (lead-in / diameter)", share),
+                          ("the same about its kind's mean (taper or dowel)", share - kind_mean)):
+        scores = [probe(x[:split], x[split:], values[:split], values[split:]) for x in (hand_made, with_measure)]
+        print(f"{label} | {scores[0]:.3f} | {scores[1]:.3f}")
 
 
 if __name__ == "__main__":
