@@ -204,8 +204,8 @@ def main() -> None:
     dense = (mesh_clouds(data.dataset_dir, ordered, args.section_points, int(cfg.data.cloud_seed))
              if args.section_points is not None else None)
     hand_made = args.input == "sections+slices"
-    lead_in = standardised_log(dataset_lead_ins(data.dataset_dir, [p.name for p in ordered]), len(train)) \
-        if args.lead_in else None
+    lead_in = (standardised_log(dataset_lead_ins(data.dataset_dir, [p.name for p in ordered]), len(train))
+               if args.lead_in else None)
     for seed in args.seeds:
         cfg = family_config(args.family, seed)
         with open_dict(cfg):

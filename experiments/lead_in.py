@@ -1,17 +1,17 @@
 """Issue 9, the pins target: the lead-in's length measured on a part's mesh.
 
 A pin's insertion force at the mouth of the bore is the misalignment's lateral spring released over its
-lead-in, k e^2 / (2 lead): a short chamfer makes a tall, narrow peak. On pins at 100 training parts the head
-fed the generator's parameters beats the head fed PIPE's hand-made input (the cloud's cross-section and the
-mesh's slices) on the small pins, whose chamfers are 0.1 to 1 mm long, below the 0.5 mm of the slices' first
-depth and the spacing of a 1024-point cloud; a ridge fit from the hand-made input to log(lead-in / diameter)
-leaves part of its variance on the test parts (docs/experiments.md, "The lead-in
-measured on the mesh"). This measure reads the lead-in off the mesh itself: the section's width (its extent
-in the plane, `trimesh.intersections.mesh_multiplane` on a geometric grid of depths from the lowest point,
-the mating end) grows fast along a chamfer and slowly or not at all beyond it; the lead-in is the first depth
-from which it grows slower than SLOPE mm per mm (a 45-degree chamfer's width grows 2, a 1:50 taper's 0.02).
-Print it beside the generator's lead-in for the learning curve's pins, and a ridge probe's R^2 of the lead-in
-from the hand-made input without and with it:
+lead-in, k e^2 / (2 lead): a short chamfer makes a tall, narrow peak. On pins at 100 training parts the head fed
+the generator's parameters beats the head fed PIPE's hand-made input (the cloud's cross-section and the mesh's
+slices) on the small pins, whose chamfers are 0.12 to 1.2 mm long, below the 0.5 mm of the slices' first depth
+and the spacing of a 1024-point cloud, and which a ridge probe reads less well from the hand-made input than
+the pins' other lengths (docs/experiments.md, "The lead-in measured on the mesh"). This measure reads the
+lead-in off the mesh itself: the section's width (its extent in the plane,
+`trimesh.intersections.mesh_multiplane` on a geometric grid of depths from the lowest point, the mating end)
+grows fast along a chamfer and slowly or not at all beyond it; the lead-in is the first depth from which it
+grows slower than SLOPE mm per mm (a 45-degree chamfer's width grows 2, a 1:50 taper's 0.02).
+Print it beside the generator's lead-in for the learning curve's pins, and a ridge probe's R^2 of the pins'
+lengths from the hand-made input without and with it:
   python experiments/lead_in.py
 """
 from __future__ import annotations
@@ -72,7 +72,7 @@ def dataset_lead_ins(root: str | Path, names: list[str]) -> np.ndarray:
 def main() -> None:
     """The learning curve's pins (seed 0's domain): each part's measured lead-in beside the generator's, then how
     well a ridge probe (`code_probe.probe`: fitted on the training and validation parts, R^2 on the test parts)
-    reads the lead-in from the hand-made input, without and with the measure."""
+    reads the pins' lengths, the lead-in among them, from the hand-made input, without and with the measure."""
     import lightning as L
     from code_probe import probe
     from expected_head import hand_made_codes
@@ -108,7 +108,9 @@ def main() -> None:
     taper = np.array([drawn[name].family == "taper" for name in names])
     kind_mean = np.where(taper, share[:split][taper[:split]].mean(), share[:split][~taper[:split]].mean())
     print("R^2 on the test parts | from the hand-made input | and the measured lead-in")
-    for label, values in (("log lead-in", np.log(true)), ("log (lead-in / diameter)", share),
+    others = [(f"log {name}", np.log([getattr(drawn[n], attr) for n in names]))
+              for name, attr in (("diameter", "diameter"), ("length", "length"), ("insertion depth", "insert_depth"))]
+    for label, values in (*others, ("log lead-in", np.log(true)), ("log (lead-in / diameter)", share),
                           ("the same about its kind's mean (taper or dowel)", share - kind_mean)):
         scores = [probe(x[:split], x[split:], values[:split], values[split:]) for x in (hand_made, with_measure)]
         print(f"{label} | {scores[0]:.3f} | {scores[1]:.3f}")
