@@ -22,10 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-
-from pipe.data.dataset import find_mesh
-from pipe.data.mesh import load_mesh, orient
-from pipe.data.spec import load_spec
+from mesh_slices import dataset_meshes
 
 SLOPE = 0.1                 # mm of width per mm of depth: between a chamfer's (about 2) and a taper's (0.02)
 FIRST_DEPTH_MM = 0.01       # the grid's first depth from the lowest point
@@ -58,15 +55,8 @@ def lead_in_length(mesh: trimesh.Trimesh, slope: float = SLOPE) -> float:
 
 
 def dataset_lead_ins(root: str | Path, names: list[str]) -> np.ndarray:
-    """(len(names),) the lead-ins [mm] of a dataset's named parts, their meshes read and turned onto the
-    insertion axis as the pipeline reads them."""
-    spec = load_spec(root)
-    values = []
-    for name in names:
-        path = find_mesh(spec.root / "parts" / name)
-        mesh = orient(load_mesh(path, spec.mesh_units), dict(spec.parts.get(name, {})).get("axis", "z"), path)
-        values.append(lead_in_length(mesh))
-    return np.asarray(values)
+    """(len(names),) the lead-ins [mm] of a dataset's named parts (`mesh_slices.dataset_meshes`)."""
+    return np.array([lead_in_length(mesh) for mesh in dataset_meshes(root, names)])
 
 
 def main() -> None:

@@ -12,10 +12,12 @@ from __future__ import annotations
 import argparse
 import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import torch
+import trimesh
 
 from pipe.data.dataset import find_mesh
 from pipe.data.mesh import load_mesh, orient
@@ -23,16 +25,19 @@ from pipe.data.slices import SLICE_DEPTHS_MM, slice_descriptor
 from pipe.data.spec import load_spec
 
 
-def dataset_slices(root: str | Path, names: list[str]) -> torch.Tensor:
-    """(len(names), SLICE_SIZE) the descriptors of a dataset's named parts, their meshes read and turned onto
-    the insertion axis as the pipeline reads them for the clouds."""
+def dataset_meshes(root: str | Path, names: list[str]) -> Iterator[trimesh.Trimesh]:
+    """A dataset's named parts' meshes, in mm, read and turned onto the insertion axis as the pipeline reads
+    them for the clouds."""
     spec = load_spec(root)
-    rows = []
     for name in names:
         path = find_mesh(spec.root / "parts" / name)
-        mesh = orient(load_mesh(path, spec.mesh_units), dict(spec.parts.get(name, {})).get("axis", "z"), path)
-        rows.append(slice_descriptor(mesh))
-    return torch.tensor(np.stack(rows), dtype=torch.float64)
+        yield orient(load_mesh(path, spec.mesh_units), dict(spec.parts.get(name, {})).get("axis", "z"), path)
+
+
+def dataset_slices(root: str | Path, names: list[str]) -> torch.Tensor:
+    """(len(names), SLICE_SIZE) the descriptors of a dataset's named parts (`dataset_meshes`)."""
+    return torch.tensor(np.stack([slice_descriptor(mesh) for mesh in dataset_meshes(root, names)]),
+                        dtype=torch.float64)
 
 
 def main() -> None:
