@@ -28,6 +28,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from pipe.data.alignment import align_final_depth
 from pipe.data.batches import stack_clouds, stack_geometry, stack_slices
 from pipe.data.prepared import PartData, PreparedDomain, data_scales, prepare_domain
 from pipe.data.slices import SLICE_SIZE
@@ -167,10 +168,15 @@ def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path) -> Path:
 
 def load_domain(cfg: DictConfig) -> PreparedDomain:
     """The configured domain's parts, preprocessed, or read from `data.prepared` where it names a folder
-    (relative paths from the project root)."""
+    (relative paths from the project root); with `data.align_final_depth` each part's trials aligned on their
+    final depth (pipe.data.alignment)."""
     root = Path(cfg.paths.root)
     prepared = root / cfg.data.prepared if cfg.data.get("prepared") else None
-    return prepare_domain(ensure_dataset(cfg.data, root), cfg.data, cfg.domain, prepared)
+    domain = prepare_domain(ensure_dataset(cfg.data, root), cfg.data, cfg.domain, prepared)
+    if not cfg.data.get("align_final_depth", False):
+        return domain
+    return replace(domain, splits={split: [align_final_depth(part) for part in parts]
+                                   for split, parts in domain.splits.items()})
 
 
 def build_plugin(kind: str, node: DictConfig, base: type, **kwargs: Any) -> Any:
@@ -288,6 +294,18 @@ def check_trained(cfg: DictConfig, folder: Path) -> None:
                             f"phase=train resume={folder}", folder)
 
 
+def check_same_alignment(cfg: DictConfig, folder: Path) -> None:
+    """Refuse to continue or evaluate a folder trained on trials aligned otherwise (`data.align_final_depth`):
+    its model would read depths measured from another origin, and nothing in its weights tells."""
+    recorded = folder / "config.yaml"
+    if not recorded.is_file():
+        return
+    trained = bool(OmegaConf.load(recorded).get("data", {}).get("align_final_depth", False))
+    if trained != bool(cfg.data.get("align_final_depth", False)):
+        raise PipeError(f"was trained with data.align_final_depth={str(trained).lower()}; continue or evaluate it "
+                        f"with the same setting", folder)
+
+
 def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
     """Train and evaluate one domain as configured (or one `phase` of it); tracked as one MLflow run unless
     `mlflow.enabled` is off."""
@@ -301,6 +319,7 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
         trained_dir = evaluated_folder(trained_dir)
     if resume:
         check_resumed_layout(trained_dir, choosing=len(weights) > 1)
+        check_same_alignment(cfg, trained_dir)
     if phase == "evaluate":
         check_trained(cfg, trained_dir)
     elif not resume and any(any(run_dir.glob(f"{folder}*.ckpt")) for folder in ("checkpoints/*/", CANDIDATES_GLOB)):
