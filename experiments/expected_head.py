@@ -27,7 +27,11 @@ first numbers of the code of zeros, to see which of them the hand-made input lac
 hand-made input is replaced by its first K principal components over the training parts, each standardised
 over them, in the code's place (zeros after), to see whether a compact input of the same measures does better;
 with `--lead-in` the log of the lead-in's length measured on each mesh (`lead_in.py`), standardised over the
-training parts, fills the code's first number, to see whether that measure gives what the parameters give.
+training parts, fills the code's first number, to see whether that measure gives what the parameters give;
+with `--bottleneck K` the head's first layer reads its input through a learnt linear map to K numbers (trained
+with the head through the force), to see whether a compact input chosen for the force does what the parameters
+do where compact inputs chosen for the measures' spread (`--components`) did not; with `--align-ends` every
+part's trials (recorded, expected and twins) are aligned on their final depth as `data.align_final_depth` does.
 Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
   OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
       --seeds 0 1 2 --draws 32                       # --input sections+slices --targets recorded,expected
@@ -38,6 +42,7 @@ import argparse
 import os
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import lightning as L
@@ -49,6 +54,7 @@ from omegaconf import open_dict
 from parameter_codes import generator_parts, parameter_codes, principal_codes, shape_parameters
 from twin_oracle import TWIN_STREAMS, expected_parts, family_config, pooled, twin_parts
 
+from pipe.data.alignment import align_final_depth
 from pipe.data.batches import stack_clouds, stack_slices
 from pipe.data.dataset import find_mesh
 from pipe.data.prepared import PartData, PreprocessSettings
@@ -137,6 +143,14 @@ def principal_input(codes: torch.Tensor, train_count: int, code_size: int, compo
     return compact
 
 
+def with_bottleneck(head: torch.nn.Module, size: int) -> None:
+    """The Gaussian head's first layer (input to hidden) replaced in place by a linear map of its input to `size`
+    numbers followed by a layer from those to the hidden width: the head reads a rank-`size` view of its input."""
+    first = head.trunk[0]
+    head.trunk[0] = torch.nn.Sequential(torch.nn.Linear(first.in_features, size, bias=False),
+                                        torch.nn.Linear(size, first.out_features))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
@@ -156,7 +170,13 @@ def main() -> None:
                     help="with --input sections+slices: its first K principal components instead")
     ap.add_argument("--lead-in", action="store_true",
                     help="with --input sections+slices: the lead-in measured on the mesh in the code's place")
+    ap.add_argument("--bottleneck", type=int, default=None, metavar="K",
+                    help="the head reads its input through a learnt linear map to K numbers")
+    ap.add_argument("--align-ends", action="store_true",
+                    help="every part's trials aligned on their final depth (data.align_final_depth)")
     args = ap.parse_args()
+    if args.bottleneck is not None and args.bottleneck < 1:
+        raise SystemExit("--bottleneck K is the size of the head's compact input: 1 or more")
     if args.section_points is not None and args.input != "sections+slices":
         raise SystemExit("--section-points measures the cross-section the head reads: give --input sections+slices")
     if args.with_parameters and args.input != "sections+slices":
@@ -184,6 +204,9 @@ def main() -> None:
                          f"({', '.join(known)})")
     ltv.set_backend(cfg.simulator)
     data = load_domain(cfg)
+    if args.align_ends:
+        data = replace(data, splits={name: [align_final_depth(p) for p in parts]
+                                     for name, parts in data.splits.items()})
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
     ordered = train + val + test
     index = {p.name: i for i, p in enumerate(ordered)}
@@ -197,9 +220,12 @@ def main() -> None:
                                   args.draws)["fit"]
         print(f"expectation of {len(ordered)} parts over {args.draws} draws: {time.perf_counter() - start:.0f} s",
               flush=True)
-    fitted_on = training_targets(train, val, test, expected)
     twins = [twin_parts(generated.family, generated.count, generated.seed, train + val, settings, TWIN_STREAMS + k)
              for k in range(max(args.twins, default=0))]
+    if args.align_ends:
+        expected = [align_final_depth(p) for p in expected]
+        twins = [[align_final_depth(p) for p in twin] for twin in twins]
+    fitted_on = training_targets(train, val, test, expected)
     fitted_on |= twin_targets(train, val, twins, args.twins)
     dense = (mesh_clouds(data.dataset_dir, ordered, args.section_points, int(cfg.data.cloud_seed))
              if args.section_points is not None else None)
@@ -215,6 +241,8 @@ def main() -> None:
                 cfg.stages.head.epochs = args.epochs
         L.seed_everything(seed, workers=True)
         encoder, head, dynamics = build_components(cfg)
+        if args.bottleneck is not None:
+            with_bottleneck(head, args.bottleneck)
         initial = {k: v.clone() for k, v in head.state_dict().items()}
         if hand_made:
             latents = hand_made_codes(build_model(cfg, data, (encoder, head, dynamics)), ordered, encoder.latent_dim)
@@ -240,6 +268,8 @@ def main() -> None:
             points += f"+parameters={args.with_parameters}" if chosen else ""
             points += f"+components={args.components}" if args.components is not None else ""
             points += "+lead_in" if args.lead_in else ""
+            points += f"+bottleneck={args.bottleneck}" if args.bottleneck is not None else ""
+            points += "+aligned_ends" if args.align_ends else ""
             variant = f"{args.input}-{target}{points}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
             score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
                              "seconds": time.perf_counter() - start},

@@ -837,7 +837,8 @@ def test_expected_head_trains_each_target_on_its_own_parts_in_order():
     (["--components", "5"], "give --input sections+slices"),
     (["--input", "sections+slices", "--components", "0"], "K of 1 or more"),
     (["--lead-in"], "give --input sections+slices"),
-    (["--input", "sections+slices", "--lead-in", "--with-parameters", "taper"], "neither --with-parameters")])
+    (["--input", "sections+slices", "--lead-in", "--with-parameters", "taper"], "neither --with-parameters"),
+    (["--bottleneck", "0"], "1 or more")])
 def test_expected_head_refuses_what_it_cannot_run_before_any_work(args, message, tmp_path):
     done = subprocess.run([sys.executable, "expected_head.py", str(tmp_path / "rows.jsonl"), *args],
                           cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
@@ -916,6 +917,28 @@ def test_lead_in_of_a_part_without_a_chamfer_is_the_grids_first_depth_and_of_a_c
     assert math.isclose(lead_in_length(cone), REACH_MM, rel_tol=0.05)
     widths = section_widths(box, [1.0, 19.0, 25.0])
     assert widths[:2] == pytest.approx([8.0, 8.0]) and widths[2] == 0.0       # beyond the part: nothing
+
+
+def test_expected_head_bottleneck_makes_the_head_read_a_rank_k_view_of_its_input():
+    import torch
+
+    from pipe.plugins.head.gaussian import GaussianHead
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import with_bottleneck
+
+    torch.manual_seed(0)
+    head = GaussianHead(latent_dim=6, num_parameters=2, hidden=8)
+    later = {k: v.clone() for k, v in head.state_dict().items() if not k.startswith("trunk.0.")}
+    with_bottleneck(head, 2)
+    assert all(torch.equal(head.state_dict()[k], v) for k, v in later.items())   # only the first layer changes
+    z, depth_max = torch.randn(5, 6), torch.full((5,), 4.0)
+    # an input moved along the map's null space gives the same profile: the head reads 2 numbers of the 6
+    basis = torch.linalg.svd(head.trunk[0][0].weight.detach())[2]
+    moved = z + 3.0 * basis[2:].sum(0)
+    for a, b in zip(vars(head(z, depth_max)).values(), vars(head(moved, depth_max)).values()):
+        assert torch.allclose(a, b, atol=1e-5)
+    assert not torch.allclose(head(z, depth_max).amplitude, head(z + basis[0], depth_max).amplitude)
 
 
 def test_expected_head_standardised_log_is_standardised_over_the_training_parts():

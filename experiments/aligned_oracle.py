@@ -1,0 +1,62 @@
+"""Issue 9: how much of the dynamic model's limit is the frame of p_z? (docs/experiments.md, "Trials aligned on
+their final depth")
+
+The oracle's identification (its starts, stopping rule and ridge: `oracle` on the recordings, `oracle_clean` on
+the noise-free force) of a generated family's test parts, once on their trials as recorded (p_z from where the
+robot started, whose gap to the part changes from trial to trial) and once aligned on their final depth
+(`data.align_final_depth`, pipe.data.alignment), scored on the same trials as every method is. Rows (the
+domain's FIT(F) and each part's) are printed and appended to OUT as JSON lines. Usage (two worker processes):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/aligned_oracle.py OUT.jsonl --family rect \
+      --only rect_0000 rect_0001 [--frames recorded aligned]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import torch
+from common import append_row
+from twin_oracle import family_config, only_parts
+
+from pipe.data.alignment import align_final_depth
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import evaluate_methods
+from pipe.model import ltv
+from pipe.pipeline import build_model, load_domain
+
+FRAMES = ("recorded", "aligned")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", help="JSON lines file the rows are appended to")
+    ap.add_argument("--family", default="pins")
+    ap.add_argument("--seed", type=int, default=0, help="the identification's random starts")
+    ap.add_argument("--only", nargs="+", default=None, metavar="PART", help="these test parts alone")
+    ap.add_argument("--frames", nargs="+", default=list(FRAMES), choices=FRAMES)
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args()
+    cfg = family_config(args.family, args.seed)
+    ltv.set_backend(cfg.simulator)
+    data = load_domain(cfg)
+    test = data.splits["test"] if args.only is None else only_parts(data.splits["test"], args.only, args.family)
+    model = build_model(cfg, data).eval()      # its weights are not read: the oracle's heads are free profiles
+    settings = {**dict(cfg.evaluation), "identification": {**dict(cfg.evaluation.identification),
+                                                            "workers": args.workers, "cache": None}}
+    for frame in args.frames:
+        parts = test if frame == "recorded" else [align_final_depth(part) for part in test]
+        start = time.perf_counter()
+        ctx = EvalContext(model, torch.zeros(len(parts), model.head.latent_dim),
+                          {p.name: i for i, p in enumerate(parts)}, data.splits["train"], 1.0 / cfg.data.rate_hz,
+                          args.seed, settings)
+        for method, result in evaluate_methods(ctx, parts, ["oracle", "oracle_clean"]).items():
+            append_row(args.out, {"family": args.family, "seed": args.seed, "frame": frame, "method": method,
+                                  "fit_F": result.domain["fit_F"], "seconds": time.perf_counter() - start,
+                                  "parts": {p: m["fit_F"] for p, m in result.per_part.items()}})
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    main()
