@@ -39,6 +39,8 @@ def test_a_parts_trials_are_shifted_whole_their_force_and_static_curves_kept_in_
     assert part.profiles[0].depth.tolist() == [0.0, 3.0, 10.0, 10.0]                      # the input is not changed
     single = PartData("q", cloud=None, profiles=[profiles[1]], static_curves=[None])
     assert align_final_depth(single).profiles[0].depth.tolist() == profiles[1].depth.tolist()
+    empty = PartData("r", cloud=None, profiles=[], static_curves=[])
+    assert align_final_depth(empty) is empty
 
 
 def _entry_depths(part: PartData) -> np.ndarray:

@@ -24,7 +24,10 @@ def final_depth_shifts(deepest: list[float]) -> list[float]:
 
 
 def align_final_depth(part: PartData) -> PartData:
-    """The part with each trial's depth (and true static curve) shifted by `final_depth_shifts`."""
+    """The part with each trial's depth (and true static curve) shifted by `final_depth_shifts`; a part without
+    trials as it is."""
+    if not part.profiles:
+        return part
     shifts = final_depth_shifts([float(np.max(profile.depth)) for profile in part.profiles])
     profiles = [replace(profile, depth=profile.depth + shift) for profile, shift in zip(part.profiles, shifts)]
     statics = [None if curve is None else replace(curve, depth=curve.depth + shift)
