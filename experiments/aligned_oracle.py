@@ -16,15 +16,13 @@ import os
 import time
 from pathlib import Path
 
-import torch
 from common import append_row
-from twin_oracle import family_config, only_parts
+from twin_oracle import family_config, identification_context, only_parts
 
 from pipe.data.alignment import align_final_depth
-from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.model import ltv
-from pipe.pipeline import build_model, load_domain
+from pipe.pipeline import load_domain
 
 FRAMES = ("recorded", "aligned")
 
@@ -42,15 +40,10 @@ def main() -> None:
     ltv.set_backend(cfg.simulator)
     data = load_domain(cfg)
     test = data.splits["test"] if args.only is None else only_parts(data.splits["test"], args.only, args.family)
-    model = build_model(cfg, data).eval()      # its weights are not read: the oracle's heads are free profiles
-    settings = {**dict(cfg.evaluation), "identification": {**dict(cfg.evaluation.identification),
-                                                            "workers": args.workers, "cache": None}}
     for frame in args.frames:
         parts = test if frame == "recorded" else [align_final_depth(part) for part in test]
         start = time.perf_counter()
-        ctx = EvalContext(model, torch.zeros(len(parts), model.head.latent_dim),
-                          {p.name: i for i, p in enumerate(parts)}, data.splits["train"], 1.0 / cfg.data.rate_hz,
-                          args.seed, settings)
+        ctx = identification_context(cfg, data, parts, args.seed, args.workers)
         for method, result in evaluate_methods(ctx, parts, ["oracle", "oracle_clean"]).items():
             append_row(args.out, {"family": args.family, "seed": args.seed, "frame": frame, "method": method,
                                   "fit_F": result.domain["fit_F"], "seconds": time.perf_counter() - start,

@@ -42,7 +42,6 @@ import argparse
 import os
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import lightning as L
@@ -203,10 +202,9 @@ def main() -> None:
         raise SystemExit(f"--with-parameters {', '.join(sorted(unknown))}: not a parameter of these parts "
                          f"({', '.join(known)})")
     ltv.set_backend(cfg.simulator)
+    with open_dict(cfg):
+        cfg.data.align_final_depth = args.align_ends
     data = load_domain(cfg)
-    if args.align_ends:
-        data = replace(data, splits={name: [align_final_depth(p) for p in parts]
-                                     for name, parts in data.splits.items()})
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
     ordered = train + val + test
     index = {p.name: i for i, p in enumerate(ordered)}

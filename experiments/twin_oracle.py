@@ -44,7 +44,7 @@ from hydra import compose, initialize_config_module
 from summarise import read_rows
 
 from pipe.data.dataset import load_dataset
-from pipe.data.prepared import PartData, PreprocessSettings
+from pipe.data.prepared import PartData, PreparedDomain, PreprocessSettings
 from pipe.data.preprocess import preprocess_trial
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
@@ -122,6 +122,17 @@ def _read_back(parts: dict, trials: list, test: list[PartData], settings: Prepro
                         static_curves=[t.static for t in loaded[part.name].trials]) for part in test]
 
 
+def identification_context(cfg, data: PreparedDomain, parts: list[PartData], seed: int,
+                           workers: int) -> EvalContext:
+    """A context to identify `parts` in as the oracle does, on `workers` processes and without the fits' folder:
+    the config's untrained model (the oracle's free profiles read only its structure) and zero codes."""
+    model = build_model(cfg, data).eval()
+    settings = {**dict(cfg.evaluation), "identification": {**dict(cfg.evaluation.identification),
+                                                            "workers": workers, "cache": None}}
+    return EvalContext(model, torch.zeros(len(parts), model.head.latent_dim), {p.name: i for i, p in enumerate(parts)},
+                       data.splits["train"], 1.0 / cfg.data.rate_hz, seed, settings)
+
+
 def pooled(twins: list[list[PartData]]) -> list[PartData]:
     """Each part with the trials of all its twins (lists of the same parts in the same order), in order."""
     return [replace(same[0], profiles=[p for twin in same for p in twin.profiles],
@@ -181,13 +192,8 @@ def main() -> None:
             print(args.family, row["fit"], f"{row['fit_F']:.2f}", flush=True)
     for seed in args.seeds:
         cfg = family_config(args.family, seed)
-        model = build_model(cfg, data).eval()      # its weights are not read: the oracle's heads are free profiles
-        settings = {**dict(cfg.evaluation), "identification": {**dict(cfg.evaluation.identification),
-                                                                "workers": args.workers, "cache": None}}
-        restarts = IdentificationSettings.from_config(settings["identification"]).restarts
-        ctx = EvalContext(model, torch.zeros(len(test), model.head.latent_dim),
-                          {p.name: i for i, p in enumerate(test)}, data.splits["train"], 1.0 / cfg.data.rate_hz,
-                          seed, settings)
+        ctx = identification_context(cfg, data, test, seed, args.workers)
+        restarts = IdentificationSettings.from_config(ctx.settings["identification"]).restarts
         fits = {} if args.skip_own else {"own": None}
         for count in args.twins:
             fitted = identify(replace(ctx, cache={}), pooled(twins[:count]))
