@@ -31,7 +31,9 @@ training parts, fills the code's first number, to see whether that measure gives
 with `--bottleneck K` the head's first layer reads its input through a learnt linear map to K numbers (trained
 with the head through the force), to see whether a compact input chosen for the force does what the parameters
 do where compact inputs chosen for the measures' spread (`--components`) did not; with `--align-ends` every
-part's trials (recorded, expected and twins) are aligned on their final depth as `data.align_final_depth` does.
+part's trials (recorded, expected and twins) are aligned on their final depth as `data.align_final_depth` does;
+`--set KEY=VALUE ...` passes Hydra overrides to the family's config (e.g. `head=seat_gaussian`), named in the
+rows' variant.
 Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
   OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
       --seeds 0 1 2 --draws 32                       # --input sections+slices --targets recorded,expected
@@ -173,6 +175,8 @@ def main() -> None:
                     help="the head reads its input through a learnt linear map to K numbers")
     ap.add_argument("--align-ends", action="store_true",
                     help="every part's trials aligned on their final depth (data.align_final_depth)")
+    ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", dest="overrides",
+                    help="Hydra overrides of the family's config, e.g. head=seat_gaussian")
     args = ap.parse_args()
     if args.bottleneck is not None and args.bottleneck < 1:
         raise SystemExit("--bottleneck K is the size of the head's compact input: 1 or more")
@@ -192,7 +196,7 @@ def main() -> None:
         raise SystemExit(f"unknown target {', '.join(sorted(unknown))}: the targets are {', '.join(TARGETS)}")
     if any(count < 1 for count in args.twins):
         raise SystemExit("--twins counts the twins pooled with a part's own recordings: 1 or more")
-    cfg = family_config(args.family, args.seeds[0])
+    cfg = family_config(args.family, args.seeds[0], args.overrides)
     if args.components is not None and args.components > cfg.encoder.latent_dim:
         raise SystemExit(f"--components {args.components}: at most the code's size, {cfg.encoder.latent_dim}")
     generator = generator_parts(cfg)      # the parts' parameters alone: neither meshes nor trials
@@ -231,7 +235,7 @@ def main() -> None:
     lead_in = (standardised_log(dataset_lead_ins(data.dataset_dir, [p.name for p in ordered]), len(train))
                if args.lead_in else None)
     for seed in args.seeds:
-        cfg = family_config(args.family, seed)
+        cfg = family_config(args.family, seed, args.overrides)
         with open_dict(cfg):
             cfg.code.sections, cfg.code.slices = hand_made, hand_made     # or the head reads the parameters alone
             cfg.trainer.progress_bar = False
@@ -268,6 +272,7 @@ def main() -> None:
             points += "+lead_in" if args.lead_in else ""
             points += f"+bottleneck={args.bottleneck}" if args.bottleneck is not None else ""
             points += "+aligned_ends" if args.align_ends else ""
+            points += "".join(f"+{override}" for override in args.overrides)
             variant = f"{args.input}-{target}{points}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
             score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
                              "seconds": time.perf_counter() - start},

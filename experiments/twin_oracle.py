@@ -34,6 +34,7 @@ import statistics
 import tempfile
 import zlib
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -59,12 +60,13 @@ TWIN_STREAMS = 1000     # twin k's trials are simulated with generator seed TWIN
 EXPECTATION_STREAM = 2000   # the unseen conditions' draws of `expected_parts`
 
 
-def family_config(family: str, seed: int):
-    """The learning curve's config for a family (its 100-part domain: the test parts do not change with it)."""
+def family_config(family: str, seed: int, overrides: Sequence[str] = ()):
+    """The learning curve's config for a family (its 100-part domain: the test parts do not change with it),
+    with further Hydra overrides (e.g. `head=seat_gaussian`)."""
     os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
     with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
         return compose(config_name="config", overrides=[
-            "data=family", f"data.generate.family={family}", "domain=curve", f"seed={seed}"])
+            "data=family", f"data.generate.family={family}", "domain=curve", f"seed={seed}", *overrides])
 
 
 def twin_parts(family: str, count: int, seed: int, test: list[PartData], settings: PreprocessSettings,

@@ -20,6 +20,7 @@ from pipe.plugins.head.gaussian import (
     centres,
     width_at_edge,
 )
+from pipe.plugins.head.seat_gaussian import SeatGaussianHead
 from pipe.plugins.model.mds1 import MDS1
 from pipe.plugins.model.mds2 import MDS2
 
@@ -225,6 +226,26 @@ def test_head_sections_tile_the_depth_range_and_widths_are_bounded():
     psi_edge = torch.exp(-(delta / 2) ** 2 / (2 * c ** 2))
     assert torch.all(psi_edge >= 1 / 20 - 1e-9) and torch.all(psi_edge <= 1 / 3 + 1e-9)
     assert sections.shape == b.shape
+
+
+def test_seat_head_counts_its_sections_in_mm_back_from_the_deepest_point():
+    """Neutral sections are section_mm long, the shallowest takes the rest of [0, max|p_z|] (20 mm: 11 + 9 x 1),
+    and sections reaching past 0 shrink in proportion (5 mm: ten of 1 mm halved); the centres near the seat
+    keep their distance from it whatever max|p_z|, which the paper's fractions do not."""
+    head = SeatGaussianHead(latent_dim=4, num_parameters=2, section_mm=1.0)
+    sections = head.sections(torch.zeros(2, 2, 10), torch.tensor([20.0, 5.0]))
+    np.testing.assert_allclose(sections[0, 0].detach().numpy(), [11.0] + [1.0] * 9, rtol=1e-5)
+    np.testing.assert_allclose(sections[1, 1].detach().numpy(), [0.5] * 10, rtol=1e-5)
+    torch.manual_seed(2)
+    z = torch.randn(1, 4).expand(2, -1)
+    depth_max = torch.tensor([30.0, 40.0])
+    centre = head(z, depth_max).centre
+    np.testing.assert_allclose((depth_max[0] - centre[0, :, 1:]).detach().numpy(),
+                               (depth_max[1] - centre[1, :, 1:]).detach().numpy(), rtol=1e-5)
+    paper = GaussianHead(latent_dim=4, num_parameters=2).profile(*(torch.zeros(2, 2, 10),) * 3, depth_max).centre
+    assert not torch.allclose(depth_max[0] - paper[0, :, -1], depth_max[1] - paper[1, :, -1])
+    with pytest.raises(ValueError, match="section_mm"):
+        SeatGaussianHead(latent_dim=4, num_parameters=2, section_mm=0.0)
 
 
 def test_profile_is_a_normalised_weighted_sum():

@@ -95,6 +95,10 @@ def test_a_folder_trained_without_sections_is_evaluated_only_with_that_setting(t
     again = run_domain(smoke_config(tiny_data, tmp_path / "again", "mlflow.enabled=false", "code.sections=false",
                                     "evaluation.baselines=[nearest]", "phase=evaluate", f"resume={trained}"))
     assert again.pipe.domain == plain.pipe.domain
+    with pytest.raises(PipeError, match=r"trained: was trained with code.sections=false; continue or evaluate"):
+        run_domain(smoke_config(tiny_data, tmp_path / "other", "mlflow.enabled=false", "phase=evaluate",
+                                f"resume={trained}"))
+    (trained / "config.yaml").unlink()          # a folder without its settings: its weights tell
     with pytest.raises(PipeError, match=r"differ in sections.mean, sections.std, head.trunk.0.weight "
                                         r"\(it was trained with code.sections=false\)"):
         run_domain(smoke_config(tiny_data, tmp_path / "other", "mlflow.enabled=false", "phase=evaluate",

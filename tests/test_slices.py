@@ -203,6 +203,14 @@ def test_a_folder_trained_without_slices_is_evaluated_only_with_that_setting(tin
     run_domain(smoke_config(tiny_data, trained, "mlflow.enabled=false", "evaluation.baselines=[nearest]",
                             "code.slices=false"))
     run_domain(smoke_config(tiny_data, sliced, "mlflow.enabled=false", "phase=train"))
+    with pytest.raises(PipeError, match=r"trained: was trained with code.slices=false; continue or evaluate"):
+        run_domain(smoke_config(tiny_data, tmp_path / "other", "mlflow.enabled=false", "code.slices=true",
+                                "phase=evaluate", f"resume={trained}"))
+    with pytest.raises(PipeError, match=r"sliced: was trained with code.sections=true, code.slices=true; continue"):
+        run_domain(smoke_config(tiny_data, tmp_path / "again", "mlflow.enabled=false", "code.sections=false",
+                                "code.slices=false", "phase=evaluate", f"resume={sliced}"))
+    for folder in (trained, sliced):            # folders without their settings: their weights tell
+        (folder / "config.yaml").unlink()
     with pytest.raises(PipeError, match=r"differ in slices.mean, slices.std, head.trunk.0.weight \(it was trained "
                                         r"with code.slices=false\)"):
         run_domain(smoke_config(tiny_data, tmp_path / "other", "mlflow.enabled=false", "code.slices=true",

@@ -34,6 +34,15 @@ def test_every_combination_composes_and_builds(encoder, model, domain):
     assert enc(cloud).recon.shape == cloud.shape
 
 
+def test_the_seat_head_composes_on_the_gaussian_head_s_settings():
+    default = config(["paths.output_dir=unused"]).head
+    cfg = config(["head=seat_gaussian", "head.section_mm=2.5", "paths.output_dir=unused"])
+    head = build_components(cfg)[1]
+    assert type(head).__name__ == "SeatGaussianHead" and head.section_mm == 2.5
+    assert (head.n, head.edge_ratios) == (default.num_local_models, (default.edge_ratio_min, default.edge_ratio_max))
+    assert head.trunk[0].out_features == default.hidden
+
+
 def test_the_defaults_are_the_papers_values_but_stage_2s_loss_the_heads_width_stage_1s_force_term_and_sections():
     cfg = config(["paths.output_dir=unused"])
     assert (cfg.encoder.latent_dim, cfg.head.num_local_models) == (32, 10)
@@ -366,12 +375,39 @@ def test_a_phase_without_what_it_needs_is_refused(tiny_data, tmp_path, overrides
 
 
 def test_a_trained_folder_of_other_settings_is_not_evaluated(tiny_data, tmp_path):
+    """Its config.yaml names the settings that differ, those the weights show (the code's size) and those they
+    do not (the head's kind, an input scale); without a config.yaml, the weights' own mismatch is found."""
     from pipe.errors import PipeError
 
-    run_domain(smoke_config(tiny_data, tmp_path / "trained", "phase=train"))
+    trained = tmp_path / "trained"
+    run_domain(smoke_config(tiny_data, trained, "phase=train"))
+    evaluate = ("phase=evaluate", f"resume={trained}")
+    with pytest.raises(PipeError, match=r"trained: was trained with encoder.latent_dim=32; continue or evaluate"):
+        run_domain(smoke_config(tiny_data, tmp_path / "evaluated", *evaluate, "encoder.latent_dim=16"))
+    with pytest.raises(PipeError, match=r"was trained with encoder.input_scale=10.0, head._target_="
+                                        r"\"pipe.plugins.head.gaussian.GaussianHead\"; continue"):
+        run_domain(smoke_config(tiny_data, tmp_path / "evaluated", *evaluate, "encoder.input_scale=5.0",
+                                "head=seat_gaussian"))
+    (trained / "config.yaml").unlink()
     with pytest.raises(PipeError, match=r"best.ckpt: does not fit this run's encoder, head and model"):
-        run_domain(smoke_config(tiny_data, tmp_path / "evaluated", "phase=evaluate", f"resume={tmp_path / 'trained'}",
-                                "encoder.latent_dim=16"))
+        run_domain(smoke_config(tiny_data, tmp_path / "evaluated", *evaluate, "encoder.latent_dim=16"))
+
+
+def test_a_folder_written_before_a_setting_existed_counts_as_its_value_then(tmp_path):
+    """A config.yaml without data.align_final_depth was trained on trials as recorded; a setting the folder
+    lacks and the run has, without a known value for old folders (a new head option), is not compared."""
+    from pipe.errors import PipeError
+    from pipe.pipeline import check_same_settings
+
+    cfg = config(["head=seat_gaussian", "paths.output_dir=unused"])
+    old = OmegaConf.to_container(cfg)
+    del old["data"]["align_final_depth"], old["head"]["section_mm"]
+    (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml(old))
+    check_same_settings(cfg, tmp_path)
+    cfg.data.align_final_depth = True
+    with pytest.raises(PipeError, match="was trained with data.align_final_depth=false"):
+        check_same_settings(cfg, tmp_path)
+    check_same_settings(cfg, tmp_path / "no config.yaml here")
 
 
 def test_an_unfinished_training_is_not_evaluated(tiny_data, tmp_path):

@@ -120,15 +120,25 @@ class GaussianHead(ParameterHead):
         """The local models from unconstrained values (B, P, N) of amplitudes, sections and widths (0, 0, 0
         is the neutral profile: amplitudes 1, equal sections, widths midway between their bounds)."""
         amplitude = F.softplus(amplitude + SOFTPLUS_ONE)
-        delta = F.softplus(section) + 1e-6
-        sections = delta / delta.sum(-1, keepdim=True) * depth_max.abs()[:, None, None]
+        sections = self.sections(section, depth_max)
         c_min = width_at_edge(sections / 2, self.edge_ratios[0])
         c_max = width_at_edge(sections / 2, self.edge_ratios[1])
         width = c_min + torch.sigmoid(width) * (c_max - c_min)
         return GaussianProfile(amplitude, centres(sections), width)
 
+    def sections(self, section: torch.Tensor, depth_max: torch.Tensor) -> torch.Tensor:
+        """The sections' lengths (B, P, N) in mm from unconstrained values (B, P, N): fractions of the trajectory's
+        depth range [0, max|p_z|] that tile it, in order of depth."""
+        delta = F.softplus(section) + 1e-6
+        return delta / delta.sum(-1, keepdim=True) * depth_max.abs()[:, None, None]
+
     def free_profiles(self, rows: torch.Tensor, generator: torch.Generator | None = None) -> FreeGaussianProfiles:
         return FreeGaussianProfiles(self, rows, generator)
+
+    def compiled_free_profiles(self, depth: np.ndarray) -> CompiledProfiles | None:
+        """One set of this head's free profiles on trajectories depth (B, T) as compiled functions."""
+        from pipe.plugins.head.gaussian_kernels import CompiledFreeProfiles  # numba: where identification runs
+        return CompiledFreeProfiles(self, depth)
 
 
 class FreeGaussianProfiles(ParameterHead):
@@ -156,5 +166,4 @@ class FreeGaussianProfiles(ParameterHead):
     def compiled(self, depth: np.ndarray) -> CompiledProfiles | None:
         if len(self.amplitude) != 1:
             return None
-        from pipe.plugins.head.gaussian_kernels import CompiledFreeProfiles  # numba: where identification runs
-        return CompiledFreeProfiles(self.structure[0], depth)
+        return self.structure[0].compiled_free_profiles(depth)

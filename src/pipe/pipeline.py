@@ -76,6 +76,10 @@ TRAINING_FILE = "training.json"  # in a trained run's folder: each stage's wall 
                                  #   the force weight it chose (pipe.training.force_choice)
 PHASES = ("all", "train", "evaluate")
 STAGES = ("vae", "head")
+MODEL_SETTINGS = ("encoder", "head", "model", "code", "data.points", "data.cloud_seed", "data.rate_hz",
+                  "data.steady_samples", "data.align_final_depth")   # check_same_settings compares these
+UNRECORDED_SETTINGS = {"code.sections": False, "code.slices": False,   # what a folder written before the
+                       "data.align_final_depth": False}                # setting existed was trained with
 
 
 @dataclass
@@ -294,16 +298,39 @@ def check_trained(cfg: DictConfig, folder: Path) -> None:
                             f"phase=train resume={folder}", folder)
 
 
-def check_same_alignment(cfg: DictConfig, folder: Path) -> None:
-    """Refuse to continue or evaluate a folder trained on trials aligned otherwise (`data.align_final_depth`):
-    its model would read depths measured from another origin, and nothing in its weights tells."""
+def model_settings(cfg: DictConfig) -> dict[str, Any]:
+    """The settings that decide what a trained model's weights mean but that its weights do not show, flattened
+    to dotted keys: the encoder, head and dynamic model's blocks (a section's length, an input scale, a time
+    constant), what the head reads (`code`) and how the data becomes the model's input."""
+    settings: dict[str, Any] = {}
+
+    def flatten(key: str, value: Any) -> None:
+        if isinstance(value, Mapping):
+            for name, inner in value.items():
+                flatten(f"{key}.{name}", inner)
+        else:
+            settings[key] = value
+
+    for key in MODEL_SETTINGS:
+        value = OmegaConf.select(cfg, key, default=None)
+        if value is not None:
+            flatten(key, OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig) else value)
+    return settings
+
+
+def check_same_settings(cfg: DictConfig, folder: Path) -> None:
+    """Refuse to continue or evaluate a folder trained with other `model_settings` (its config.yaml): its weights
+    would be read as another model's, and nothing in them tells (a setting its config.yaml lacks, written before
+    the setting existed, counts as that setting's value then, or is not compared)."""
     recorded = folder / "config.yaml"
     if not recorded.is_file():
         return
-    trained = bool(OmegaConf.load(recorded).get("data", {}).get("align_final_depth", False))
-    if trained != bool(cfg.data.get("align_final_depth", False)):
-        raise PipeError(f"was trained with data.align_final_depth={str(trained).lower()}; continue or evaluate it "
-                        f"with the same setting", folder)
+    trained = UNRECORDED_SETTINGS | model_settings(OmegaConf.load(recorded))
+    current = UNRECORDED_SETTINGS | model_settings(cfg)
+    if differing := [key for key in trained if key in current and trained[key] != current[key]]:
+        listed = ", ".join(f"{key}={json.dumps(trained[key])}" for key in differing)
+        raise PipeError(f"was trained with {listed}; continue or evaluate it with the settings it was trained with "
+                        f"(its config.yaml)", folder)
 
 
 def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
@@ -319,7 +346,7 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
         trained_dir = evaluated_folder(trained_dir)
     if resume:
         check_resumed_layout(trained_dir, choosing=len(weights) > 1)
-        check_same_alignment(cfg, trained_dir)
+        check_same_settings(cfg, trained_dir)
     if phase == "evaluate":
         check_trained(cfg, trained_dir)
     elif not resume and any(any(run_dir.glob(f"{folder}*.ckpt")) for folder in ("checkpoints/*/", CANDIDATES_GLOB)):
