@@ -30,7 +30,9 @@ with `--lead-in` the log of the lead-in's length measured on each mesh (`lead_in
 training parts, fills the code's first number, to see whether that measure gives what the parameters give;
 with `--bottleneck K` the head's first layer reads its input through a learnt linear map to K numbers (trained
 with the head through the force), to see whether a compact input chosen for the force does what the parameters
-do where compact inputs chosen for the measures' spread (`--components`) did not; with `--align-ends` every
+do where compact inputs chosen for the measures' spread (`--components`) did not; with `--fixed-grid` the head
+learns its local models' amplitudes alone, on equal sections with widths midway between their bounds, to see
+whether placing the local models per part costs more than it gives; with `--align-ends` every
 part's trials (recorded, expected and twins) are aligned on their final depth as `data.align_final_depth` does;
 `--set KEY=VALUE ...` passes Hydra overrides to the family's config (e.g. `head=seat_gaussian`), named in the
 rows' variant.
@@ -144,6 +146,16 @@ def principal_input(codes: torch.Tensor, train_count: int, code_size: int, compo
     return compact
 
 
+def with_fixed_grid(head: torch.nn.Module) -> None:
+    """The Gaussian head's sections and widths held at their neutral values (equal sections, widths midway
+    between their bounds) whatever its input, in place: it learns the local models' amplitudes alone."""
+    for branch in (head.section, head.width):
+        last = branch[-1]
+        torch.nn.init.zeros_(last.weight)
+        torch.nn.init.zeros_(last.bias)
+        last.requires_grad_(False)
+
+
 def with_bottleneck(head: torch.nn.Module, size: int) -> None:
     """The Gaussian head's first layer (input to hidden) replaced in place by a linear map of its input to `size`
     numbers followed by a layer from those to the hidden width: the head reads a rank-`size` view of its input."""
@@ -173,6 +185,8 @@ def main() -> None:
                     help="with --input sections+slices: the lead-in measured on the mesh in the code's place")
     ap.add_argument("--bottleneck", type=int, default=None, metavar="K",
                     help="the head reads its input through a learnt linear map to K numbers")
+    ap.add_argument("--fixed-grid", action="store_true",
+                    help="the head learns its local models' amplitudes alone, on its neutral sections and widths")
     ap.add_argument("--align-ends", action="store_true",
                     help="every part's trials aligned on their final depth (data.align_final_depth)")
     ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", dest="overrides",
@@ -245,6 +259,8 @@ def main() -> None:
         encoder, head, dynamics = build_components(cfg)
         if args.bottleneck is not None:
             with_bottleneck(head, args.bottleneck)
+        if args.fixed_grid:
+            with_fixed_grid(head)
         initial = {k: v.clone() for k, v in head.state_dict().items()}
         if hand_made:
             latents = hand_made_codes(build_model(cfg, data, (encoder, head, dynamics)), ordered, encoder.latent_dim)
@@ -271,6 +287,7 @@ def main() -> None:
             points += f"+components={args.components}" if args.components is not None else ""
             points += "+lead_in" if args.lead_in else ""
             points += f"+bottleneck={args.bottleneck}" if args.bottleneck is not None else ""
+            points += "+fixed_grid" if args.fixed_grid else ""
             points += "+aligned_ends" if args.align_ends else ""
             points += "".join(f"+{override}" for override in args.overrides)
             variant = f"{args.input}-{target}{points}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")

@@ -941,6 +941,26 @@ def test_expected_head_bottleneck_makes_the_head_read_a_rank_k_view_of_its_input
     assert not torch.allclose(head(z, depth_max).amplitude, head(z + basis[0], depth_max).amplitude)
 
 
+def test_expected_head_fixed_grid_keeps_the_neutral_sections_and_widths_and_learns_amplitudes():
+    import torch
+
+    from pipe.plugins.head.gaussian import GaussianHead
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import with_fixed_grid
+
+    torch.manual_seed(0)
+    head = GaussianHead(latent_dim=6, num_parameters=2, hidden=8)
+    with_fixed_grid(head)
+    depth_max = torch.tensor([4.0, 4.0])
+    profile = head(torch.randn(2, 6), depth_max)
+    neutral = head.profile(*(torch.zeros(2, 2, head.n),) * 3, depth_max)
+    assert torch.allclose(profile.centre, neutral.centre) and torch.allclose(profile.width, neutral.width)
+    assert not torch.allclose(profile.amplitude[0], profile.amplitude[1])          # the amplitudes follow z
+    trainable = {name for name, p in head.named_parameters() if p.requires_grad}
+    assert "section.2.weight" not in trainable and "width.2.bias" not in trainable and "amplitude.2.weight" in trainable
+
+
 def test_expected_head_standardised_log_is_standardised_over_the_training_parts():
     import numpy as np
 
