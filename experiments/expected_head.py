@@ -35,7 +35,10 @@ learns its local models' amplitudes alone, on equal sections with widths midway 
 whether placing the local models per part costs more than it gives; with `--align-ends` every
 part's trials (recorded, expected and twins) are aligned on their final depth as `data.align_final_depth` does;
 `--set KEY=VALUE ...` passes Hydra overrides to the family's config (e.g. `head=seat_gaussian`), named in the
-rows' variant.
+rows' variant; with `--pooled-normaliser` stage 2 divides each trial's squared error by its part's mean force
+variance (times the trial's length) instead of the trial's own squared deviation (`loss=nmse`), to see whether
+a trial that happened to vary little, whose weight is large, is what makes ten recordings noisier to learn
+from than their expectation.
 Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
   OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
       --seeds 0 1 2 --draws 32                       # --input sections+slices --targets recorded,expected
@@ -68,6 +71,7 @@ from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SECTION_SIZE, SectionCode
 from pipe.pipeline import build_components, build_model, load_domain
 from pipe.training.fit import fit_head
+from pipe.training.stages import HeadStage
 
 TARGETS = ("recorded", "expected", "expected_test")
 INPUTS = ("geometry", "sections+slices")
@@ -164,6 +168,35 @@ def with_bottleneck(head: torch.nn.Module, size: int) -> None:
                                         torch.nn.Linear(size, first.out_features))
 
 
+def part_variances(parts: list[PartData], index: dict[str, int]) -> torch.Tensor:
+    """(rows,) each part's force variance about each trial's mean, averaged over its trials, at its row of
+    `index` (ones at rows of no part given)."""
+    variances = torch.ones(len(index))
+    for part in parts:
+        variances[index[part.name]] = float(np.mean([np.var(trial.force) for trial in part.profiles]))
+    return variances
+
+
+class PooledNormaliserStage(HeadStage):
+    """Stage 2 on `nmse` with each trial's squared error over its part's variance (`part_variances`) times its
+    length instead of its own squared deviation: a trial that happened to vary little (a small pin met with
+    little misalignment) no longer outweighs its part's other trials."""
+
+    variances: torch.Tensor     # set by `pooled_normaliser_stage`
+
+    def _step(self, batch, split: str) -> torch.Tensor:
+        weight = batch.mask.to(batch.force.dtype)
+        pred = self.model(self.latents[batch.part], batch.depth, batch.dt)
+        error = ((pred - batch.force) ** 2 * weight).sum(1)
+        loss = (error / (self.variances.to(error)[batch.part] * weight.sum(1))).mean()
+        self.log(f"head/{split}_loss", loss, batch_size=len(batch.part), on_epoch=True, on_step=False)
+        return loss
+
+
+def pooled_normaliser_stage(variances: torch.Tensor) -> type[HeadStage]:
+    return type("PooledNormaliser", (PooledNormaliserStage,), {"variances": variances})
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
@@ -189,6 +222,8 @@ def main() -> None:
                     help="the head learns its local models' amplitudes alone, on its neutral sections and widths")
     ap.add_argument("--align-ends", action="store_true",
                     help="every part's trials aligned on their final depth (data.align_final_depth)")
+    ap.add_argument("--pooled-normaliser", action="store_true",
+                    help="stage 2 normalises each trial's error by its part's mean force variance, not its own")
     ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", dest="overrides",
                     help="Hydra overrides of the family's config, e.g. head=seat_gaussian")
     args = ap.parse_args()
@@ -281,7 +316,9 @@ def main() -> None:
             model = build_model(cfg, data, (encoder, head, dynamics))
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
-                fit_head(cfg, model, latents, index, *fitted_on[target], Path(tmp), False, [])
+                stage = (pooled_normaliser_stage(part_variances(sum(fitted_on[target], []), index))
+                         if args.pooled_normaliser else HeadStage)
+                fit_head(cfg, model, latents, index, *fitted_on[target], Path(tmp), False, [], stage)
             points = f"+section_points={args.section_points}" if args.section_points is not None else ""
             points += f"+parameters={args.with_parameters}" if chosen else ""
             points += f"+components={args.components}" if args.components is not None else ""
@@ -289,6 +326,7 @@ def main() -> None:
             points += f"+bottleneck={args.bottleneck}" if args.bottleneck is not None else ""
             points += "+fixed_grid" if args.fixed_grid else ""
             points += "+aligned_ends" if args.align_ends else ""
+            points += "+pooled_normaliser" if args.pooled_normaliser else ""
             points += "".join(f"+{override}" for override in args.overrides)
             variant = f"{args.input}-{target}{points}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
             score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
