@@ -58,7 +58,7 @@ from common import score
 from lead_in import dataset_lead_ins
 from omegaconf import open_dict
 from parameter_codes import generator_parts, parameter_codes, principal_codes, shape_parameters
-from twin_oracle import TWIN_STREAMS, expected_parts, family_config, pooled, twin_parts
+from twin_oracle import TWIN_STREAMS, drawn_parts, expected_parts, family_config, pooled, twin_parts
 
 from pipe.data.alignment import align_final_depth
 from pipe.data.batches import stack_clouds, stack_slices
@@ -267,11 +267,10 @@ def main() -> None:
     expected = []
     if {"expected", "expected_test"} & set(targets):
         start = time.perf_counter()
-        expected = expected_parts(generated.family, generated.count, generated.seed, ordered, settings,
-                                  args.draws)["fit"]
+        expected = expected_parts(drawn_parts(generated), generated.seed, ordered, settings, args.draws)["fit"]
         print(f"expectation of {len(ordered)} parts over {args.draws} draws: {time.perf_counter() - start:.0f} s",
               flush=True)
-    twins = [twin_parts(generated.family, generated.count, generated.seed, train + val, settings, TWIN_STREAMS + k)
+    twins = [twin_parts(drawn_parts(generated), train + val, settings, TWIN_STREAMS + k)
              for k in range(max(args.twins, default=0))]
     if args.align_ends:
         expected = [align_final_depth(p) for p in expected]

@@ -18,12 +18,16 @@ The expectations do not depend on the seed (their rows carry none); the identifi
 An `identified_expected_fit` row also holds, per part, the fit's FIT(F) on the expectation it was fitted to
 (`fitted_on`), its force loss and whether it converged; `--only PART ...` runs some test parts alone.
 
+`--domain dsub|pins|conn` takes a paper domain's test parts on the embedded dataset instead (its parts are the
+catalogue's, simulated again the same way; rows labelled `paper <domain>`).
 Rows (the domain's FIT(F) and each part's) are printed and appended to OUT as JSON lines; `--table`
 summarises them. Usage (the family's test parts as the learning curve splits them; two worker processes):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/twin_oracle.py OUT.jsonl --family pins \
       --seeds 0 1 2 --twins 1 3
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/twin_oracle.py OUT.jsonl --family pins \
       --expected 32 --identify-expected --skip-own --seeds 0 1 2
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/twin_oracle.py OUT.jsonl --domain dsub \
+      --expected 64 --identify-expected --twins 3 --skip-own --seeds 0 1 2
   python experiments/twin_oracle.py OUT.jsonl --table      # --parts: each part's FIT(F) too
 """
 from __future__ import annotations
@@ -53,6 +57,7 @@ from pipe.evaluation.identification import IdentificationSettings, identify
 from pipe.evaluation.metrics import force_metrics
 from pipe.model import ltv
 from pipe.pipeline import build_model, load_domain
+from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.families import family_parts
 from pipe.synthetic.generate import FORCE_NOISE, draw_conditions, simulate_conditions, simulate_parts, write_dataset
 
@@ -69,16 +74,29 @@ def family_config(family: str, seed: int, overrides: Sequence[str] = ()):
             "data=family", f"data.generate.family={family}", "domain=curve", f"seed={seed}", *overrides])
 
 
-def twin_parts(family: str, count: int, seed: int, test: list[PartData], settings: PreprocessSettings,
+def paper_config(domain: str, seed: int):
+    """The config of a paper domain (dsub, pins or conn) on the embedded dataset, generated from the catalogue."""
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
+        return compose(config_name="config", overrides=[f"domain={domain}", f"seed={seed}"])
+
+
+def drawn_parts(generate) -> dict[str, Plug | Pin]:
+    """The generator's parts of a dataset made by `pipe data generate` (`cfg.data.generate`): the family's
+    `family_parts` where it names a family, else the catalogue of the embedded dataset."""
+    family = generate.get("family")
+    return family_parts(family, generate.count, generate.seed) if family else CATALOGUE
+
+
+def twin_parts(drawn: dict[str, Plug | Pin], test: list[PartData], settings: PreprocessSettings,
                stream: int) -> list[PartData]:
-    """The test parts' twins: the generator's same parts (`family_parts(family, count, seed)`), their trials
-    simulated from generator seed `stream` (the dataset's own: `seed`)."""
-    drawn = family_parts(family, count, seed)
+    """The test parts' twins: the generator's same parts (`drawn`, of `drawn_parts`), their trials simulated
+    from generator seed `stream` (the dataset's own: its `generate.seed`)."""
     parts = {p.name: drawn[p.name] for p in test}
     return _read_back(parts, simulate_parts(parts, stream), test, settings, f"twins of stream {stream}")
 
 
-def expected_parts(family: str, count: int, seed: int, test: list[PartData], settings: PreprocessSettings,
+def expected_parts(drawn: dict[str, Plug | Pin], seed: int, test: list[PartData], settings: PreprocessSettings,
                    draws: int) -> dict[str, list[PartData]]:
     """The test parts with each trial's force replaced by the generator's expectation of it given what the
     recording shows: the trial's own speed, gap and overtravel (its commanded motion) with the conditions no
@@ -87,7 +105,6 @@ def expected_parts(family: str, count: int, seed: int, test: list[PartData], set
     forces: `mean`, their mean, which minimises the expected squared error; `fit`, their mean weighted by
     1 / (the draw's sum of squares about its mean, sensor noise included), which maximises the expected FIT
     (a trial's FIT divides its squared error by that sum, which the unseen conditions change too)."""
-    drawn = family_parts(family, count, seed)
     parts = {p.name: drawn[p.name] for p in test}
     own = simulate_parts(parts, seed)
     expected: dict[str, list] = {"mean": [], "fit": []}
@@ -152,6 +169,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
     ap.add_argument("--family", default="pins")
+    ap.add_argument("--domain", choices=("dsub", "pins", "conn"), default=None,
+                    help="a paper domain's test parts on the embedded dataset instead of a family's")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--twins", type=int, nargs="*", default=[], help="numbers of twins pooled per fit")
     ap.add_argument("--workers", type=int, default=2)
@@ -170,30 +189,31 @@ def main() -> None:
         rows = read_rows(args.out)
         print(table(rows) + ("\n\n" + part_table(rows) if args.parts else ""))
         return
-    cfg = family_config(args.family, args.seeds[0])
+    config = (lambda seed: paper_config(args.domain, seed)) if args.domain else (
+        lambda seed: family_config(args.family, seed))
+    label = f"paper {args.domain}" if args.domain else args.family
+    cfg = config(args.seeds[0])
     ltv.set_backend(cfg.simulator)
     data = load_domain(cfg)
     test = data.splits["test"]
     if args.only is not None:
-        test = only_parts(test, args.only, args.family)
-    generated = cfg.data.generate
+        test = only_parts(test, args.only, label)
+    drawn = drawn_parts(cfg.data.generate)
     preprocessing = PreprocessSettings.from_config(cfg.data)
-    twins = [twin_parts(generated.family, generated.count, generated.seed, test, preprocessing, TWIN_STREAMS + k)
-             for k in range(max(args.twins, default=0))]
+    twins = [twin_parts(drawn, test, preprocessing, TWIN_STREAMS + k) for k in range(max(args.twins, default=0))]
     expected = {}
     if args.expected:
-        expected = expected_parts(generated.family, generated.count, generated.seed, test, preprocessing,
-                                  args.expected)
+        expected = expected_parts(drawn, cfg.data.generate.seed, test, preprocessing, args.expected)
         for kind, guesses in expected.items():
             per_part = {part.name: float(np.mean([force_metrics(p.force, e.force, 1.0 / cfg.data.rate_hz)["fit_F"]
                                                   for p, e in zip(part.profiles, guess.profiles)]))
                         for part, guess in zip(test, guesses)}
-            row = {"family": args.family, "seed": None, "fit": f"expected_{kind}={args.expected}",
+            row = {"family": label, "seed": None, "fit": f"expected_{kind}={args.expected}",
                    "fit_F": float(np.mean(list(per_part.values()))), "parts": per_part}
             append_row(args.out, row)
-            print(args.family, row["fit"], f"{row['fit_F']:.2f}", flush=True)
+            print(label, row["fit"], f"{row['fit_F']:.2f}", flush=True)
     for seed in args.seeds:
-        cfg = family_config(args.family, seed)
+        cfg = config(seed)
         ctx = identification_context(cfg, data, test, seed, args.workers)
         restarts = IdentificationSettings.from_config(ctx.settings["identification"]).restarts
         fits = {} if args.skip_own else {"own": None}
@@ -206,7 +226,7 @@ def main() -> None:
         for name, fitted in fits.items():
             scored = ctx if fitted is None else replace(ctx, cache={f"identified_force_{restarts}": fitted})
             result = evaluate_methods(scored, test, ["oracle"])["oracle"]
-            row = {"family": args.family, "seed": seed, "fit": name, "fit_F": result.domain["fit_F"],
+            row = {"family": label, "seed": seed, "fit": name, "fit_F": result.domain["fit_F"],
                    "parts": {p: m["fit_F"] for p, m in result.per_part.items()}}
             if name.startswith("identified_expected"):       # also: its FIT(F) on what it was fitted to
                 fitted_on = evaluate_methods(scored, expected["fit"], ["oracle"])["oracle"]
@@ -214,7 +234,7 @@ def main() -> None:
                         "loss": {p: fit.loss for p, fit in fitted.items()},
                         "converged": {p: fit.converged for p, fit in fitted.items()}}
             append_row(args.out, row)
-            print(args.family, seed, name, f"{row['fit_F']:.2f}", flush=True)
+            print(label, seed, name, f"{row['fit_F']:.2f}", flush=True)
 
 
 def table(rows: list[dict]) -> str:

@@ -745,9 +745,11 @@ def test_twin_oracle_twins_and_expectation_are_the_generators_same_parts_and_mot
     from pipe.data.dataset import load_dataset
     from pipe.data.prepared import PreprocessSettings, prepare_part
     from pipe.data.spec import load_spec
+    from pipe.synthetic.families import family_parts
     from pipe.synthetic.generate import TRIALS_PER_PART, generate_dataset
 
     root = generate_dataset(tmp_path / "pins", family="pins", count=2)
+    drawn = family_parts("pins", 2, 0)
     settings = PreprocessSettings(points=256, cloud_seed=0, rate_hz=100.0, steady_samples=1)
     own = [prepare_part(part, load_spec(root), settings) for part in load_dataset(root).parts.values()]
 
@@ -755,11 +757,11 @@ def test_twin_oracle_twins_and_expectation_are_the_generators_same_parts_and_mot
         return [p.force for part in parts for p in part.profiles]
 
     # the dataset's own stream gives the dataset's trials back to the digit: a twin is the generator's same part
-    same = twin_parts("pins", 2, 0, own, settings, stream=0)
+    same = twin_parts(drawn, own, settings, stream=0)
     assert all(np.array_equal(a, b) for a, b in zip(forces(same), forces(own)))
     assert [part.cloud for part in same] == [part.cloud for part in own]
     # another stream draws every trial again (other conditions, other noise), the same way every time
-    first, again, second = (twin_parts("pins", 2, 0, own, settings, stream=s) for s in (1000, 1000, 1001))
+    first, again, second = (twin_parts(drawn, own, settings, stream=s) for s in (1000, 1000, 1001))
     assert all(np.array_equal(a, b) for a, b in zip(forces(first), forces(again)))
     assert not any(len(a) == len(b) and np.allclose(a, b) for a, b in zip(forces(first), forces(own)))
     assert not any(len(a) == len(b) and np.allclose(a, b) for a, b in zip(forces(first), forces(second)))
@@ -772,7 +774,7 @@ def test_twin_oracle_twins_and_expectation_are_the_generators_same_parts_and_mot
     # the expected force keeps each trial's own motion (its depth within the noise and the file's rounding, where
     # another trial's speed or overtravel would move it by millimetres), starts at rest without bias or noise,
     # and is not the measured force
-    expected = expected_parts("pins", 2, 0, own, settings, draws=3)
+    expected = expected_parts(drawn, 0, own, settings, draws=3)
     assert set(expected) == {"mean", "fit"}
     for mine, guess, weighted in zip(own, expected["mean"], expected["fit"]):
         # the FIT-weighted mean of the same draws is another mean of them
@@ -783,6 +785,34 @@ def test_twin_oracle_twins_and_expectation_are_the_generators_same_parts_and_mot
             assert np.abs(predicted.depth - measured.depth).max() < 0.02
             assert np.abs(predicted.force[:5]).max() == 0.0 and np.array_equal(predicted.force, predicted.force_clean)
             assert not np.allclose(predicted.force, measured.force, atol=0.05)
+
+
+def test_twin_oracle_twins_of_the_embedded_dataset_are_the_catalogues_parts(tmp_path):
+    import numpy as np
+    from omegaconf import OmegaConf
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from twin_oracle import drawn_parts, twin_parts
+
+    from pipe.data.dataset import load_dataset
+    from pipe.data.prepared import PreprocessSettings, prepare_part
+    from pipe.data.spec import load_spec
+    from pipe.synthetic.catalogue import CATALOGUE
+    from pipe.synthetic.families import family_parts
+    from pipe.synthetic.generate import generate_dataset
+
+    # the embedded dataset's config names no family: its parts are the catalogue's; a family's are drawn
+    assert drawn_parts(OmegaConf.create({"seed": 0})) is CATALOGUE
+    assert drawn_parts(OmegaConf.create({"seed": 0, "family": "rect", "count": 3})) == family_parts("rect", 3, 0)
+    root = generate_dataset(tmp_path / "paper", seed=5, parts=["taper8", "dsub26"])
+    settings = PreprocessSettings(points=256, cloud_seed=0, rate_hz=100.0, steady_samples=1)
+    own = [prepare_part(part, load_spec(root), settings) for part in load_dataset(root).parts.values()]
+    same = twin_parts(CATALOGUE, own, settings, stream=5)      # the dataset's own stream: its trials back
+    other = twin_parts(CATALOGUE, own, settings, stream=1000)
+    for mine, twin, drawn_again in zip(own, same, other):
+        assert all(np.array_equal(a.force, b.force) for a, b in zip(mine.profiles, twin.profiles))
+        assert not any(len(a.force) == len(b.force) and np.allclose(a.force, b.force)
+                       for a, b in zip(mine.profiles, drawn_again.profiles))
 
 
 def test_twin_oracle_only_keeps_the_named_test_parts_in_the_splits_order_and_refuses_others():
