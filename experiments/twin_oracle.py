@@ -260,9 +260,9 @@ def part_table(rows: list[dict]) -> str:
         for part, fit_f in row["parts"].items():
             values[(row["family"], part)][row["fit"]].append(fit_f)
     fits = list(dict.fromkeys(row["fit"] for row in rows))
-    lines = ["| part | " + " | ".join(fits) + " |", "| --- |" + " --- |" * len(fits)]
-    for (_, part), by_fit in sorted(values.items()):
-        lines.append(f"| {part} | " + " | ".join(f"{statistics.fmean(by_fit[f]):.2f}" if by_fit[f] else ""
+    lines = ["| family | part | " + " | ".join(fits) + " |", "| --- | --- |" + " --- |" * len(fits)]
+    for (family, part), by_fit in sorted(values.items()):      # a part of two domains once per domain
+        lines.append(f"| {family} | {part} | " + " | ".join(f"{statistics.fmean(by_fit[f]):.2f}" if by_fit[f] else ""
                                                  for f in fits) + " |")
     return "\n".join(lines)
 

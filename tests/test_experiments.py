@@ -837,6 +837,11 @@ def test_twin_oracle_table_gives_each_fit_over_the_seeds_and_the_median_part(tmp
     # own: mean 82 ± stdev(80, 84); median of 90, 70, 92, 76 is 83; one twin: one seed, the median part 20
     assert f"| pins | own | 82.00 ± {statistics.stdev([80.0, 84.0]):.2f} | 83.00 | 2 |" in printed
     assert "| pins | twins=1 | 20.00 ± 0.00 | 20.00 | 1 |" in printed
+    # per part: the mean over the seeds, each part under its family (a paper part may sit in two domains)
+    rows.append({"family": "paper conn", "seed": 0, "fit": "own", "fit_F": 50.0, "parts": {"pins_0000": 50.0}})
+    printed = printed_table("twin_oracle.py", rows, tmp_path, "--table", "--parts")
+    assert "| paper conn | pins_0000 | 50.00 |  |" in printed
+    assert "| pins | pins_0000 | 91.00 | 88.00 |" in printed
 
 
 def test_expected_head_trains_each_target_on_its_own_parts_in_order():
