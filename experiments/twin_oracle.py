@@ -83,7 +83,10 @@ def paper_config(domain: str, seed: int):
 
 def drawn_parts(generate) -> dict[str, Plug | Pin]:
     """The generator's parts of a dataset made by `pipe data generate` (`cfg.data.generate`): the family's
-    `family_parts` where it names a family, else the catalogue of the embedded dataset."""
+    `family_parts` where it names a family, else the catalogue of the embedded dataset; a dataset of
+    recordings (no `generate`) has no generator to draw its parts again."""
+    if generate is None:
+        raise SystemExit("the dataset was not generated (data.generate is null): its parts cannot be drawn again")
     family = generate.get("family")
     return family_parts(family, generate.count, generate.seed) if family else CATALOGUE
 

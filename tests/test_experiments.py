@@ -804,6 +804,8 @@ def test_twin_oracle_twins_of_the_embedded_dataset_are_the_catalogues_parts(tmp_
     # the embedded dataset's config names no family: its parts are the catalogue's; a family's are drawn
     assert drawn_parts(OmegaConf.create({"seed": 0})) is CATALOGUE
     assert drawn_parts(OmegaConf.create({"seed": 0, "family": "rect", "count": 3})) == family_parts("rect", 3, 0)
+    with pytest.raises(SystemExit, match="not generated"):
+        drawn_parts(None)
     root = generate_dataset(tmp_path / "paper", seed=5, parts=["taper8", "dsub26"])
     settings = PreprocessSettings(points=256, cloud_seed=0, rate_hz=100.0, steady_samples=1)
     own = [prepare_part(part, load_spec(root), settings) for part in load_dataset(root).parts.values()]
@@ -842,6 +844,38 @@ def test_twin_oracle_table_gives_each_fit_over_the_seeds_and_the_median_part(tmp
     printed = printed_table("twin_oracle.py", rows, tmp_path, "--table", "--parts")
     assert "| paper conn | pins_0000 | 50.00 |  |" in printed
     assert "| pins | pins_0000 | 91.00 | 88.00 |" in printed
+
+
+def test_expected_head_pooled_normaliser_divides_by_the_parts_mean_variance():
+    from types import SimpleNamespace
+
+    import numpy as np
+    import torch
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import part_variances, pooled_normaliser_stage
+
+    from pipe.data.batches import TrialBatch
+
+    trial = lambda *force: SimpleNamespace(force=np.array(force))       # noqa: E731
+    parts = [SimpleNamespace(name="a", profiles=[trial(0.0, 2.0), trial(0.0, 4.0)]),    # variances 1 and 4
+             SimpleNamespace(name="b", profiles=[trial(1.0, 1.0, 4.0)])]                 # variance 2
+    variances = part_variances(parts, {"a": 0, "test": 1, "b": 2})
+    assert variances.tolist() == [2.5, 1.0, 2.0]        # the part's mean variance; ones where no part is given
+
+    class Constant(torch.nn.Module):        # predicts 1 N everywhere, whatever the part
+        encoder = torch.nn.Identity()
+
+        def forward(self, z, depth, dt):
+            return torch.ones_like(depth)
+
+    stage = pooled_normaliser_stage(variances)(Constant(), torch.zeros(3, 1), lr=1e-3, loss="nmse")
+    batch = TrialBatch(part=torch.tensor([0, 2]), depth=torch.zeros(2, 3),
+                       force=torch.tensor([[0.0, 2.0, 2.0], [1.0, 1.0, 4.0]]),
+                       mask=torch.tensor([[True, True, False], [True, True, True]]), dt=0.01)
+    # trial 1: errors 1 and 1 over 2.5 x its 2 real samples; trial 2: error 9 over 2 x 3 samples
+    expected = (2.0 / (2.5 * 2) + 9.0 / (2.0 * 3)) / 2
+    assert stage.training_step(batch, 0).item() == pytest.approx(expected)
 
 
 def test_expected_head_trains_each_target_on_its_own_parts_in_order():
