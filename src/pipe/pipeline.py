@@ -52,6 +52,7 @@ from pipe.synthetic import generate_dataset
 from pipe.tracking import (
     StageLogger,
     dvc_dataset_tags,
+    flatten,
     git_commit,
     log_outputs,
     log_run_metrics,
@@ -78,8 +79,8 @@ PHASES = ("all", "train", "evaluate")
 STAGES = ("vae", "head")
 MODEL_SETTINGS = ("encoder", "head", "model", "code", "data.points", "data.cloud_seed", "data.rate_hz",
                   "data.steady_samples", "data.align_final_depth")   # check_same_settings compares these
-UNRECORDED_SETTINGS = {"code.sections": False, "code.slices": False,   # what a folder written before the
-                       "data.align_final_depth": False}                # setting existed was trained with
+UNRECORDED_SETTINGS = {"code.sections": "false", "code.slices": "false",   # what a folder written before
+                       "data.align_final_depth": "false"}                    # the setting existed was trained with
 
 
 @dataclass
@@ -298,24 +299,13 @@ def check_trained(cfg: DictConfig, folder: Path) -> None:
                             f"phase=train resume={folder}", folder)
 
 
-def model_settings(cfg: DictConfig) -> dict[str, Any]:
-    """The settings that decide what a trained model's weights mean but that its weights do not show, flattened
-    to dotted keys: the encoder, head and dynamic model's blocks (a section's length, an input scale, a time
-    constant), what the head reads (`code`) and how the data becomes the model's input."""
-    settings: dict[str, Any] = {}
-
-    def flatten(key: str, value: Any) -> None:
-        if isinstance(value, Mapping):
-            for name, inner in value.items():
-                flatten(f"{key}.{name}", inner)
-        else:
-            settings[key] = value
-
-    for key in MODEL_SETTINGS:
-        value = OmegaConf.select(cfg, key, default=None)
-        if value is not None:
-            flatten(key, OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig) else value)
-    return settings
+def model_settings(cfg: DictConfig) -> dict[str, str]:
+    """The settings that decide what a trained model's weights mean but that its weights do not show, as dotted
+    keys with JSON values: the encoder, head and dynamic model's blocks (a section's length, an input scale, a
+    time constant), what the head reads (`code`) and how the data becomes the model's input."""
+    chosen = {key: OmegaConf.select(cfg, key, default=None) for key in MODEL_SETTINGS}
+    return flatten({key: OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+                    for key, value in chosen.items() if value is not None}, leaf=json.dumps)
 
 
 def check_same_settings(cfg: DictConfig, folder: Path) -> None:
@@ -328,7 +318,7 @@ def check_same_settings(cfg: DictConfig, folder: Path) -> None:
     trained = UNRECORDED_SETTINGS | model_settings(OmegaConf.load(recorded))
     current = UNRECORDED_SETTINGS | model_settings(cfg)
     if differing := [key for key in trained if key in current and trained[key] != current[key]]:
-        listed = ", ".join(f"{key}={json.dumps(trained[key])}" for key in differing)
+        listed = ", ".join(f"{key}={trained[key]}" for key in differing)
         raise PipeError(f"was trained with {listed}; continue or evaluate it with the settings it was trained with "
                         f"(its config.yaml)", folder)
 

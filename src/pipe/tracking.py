@@ -12,7 +12,7 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -48,14 +48,14 @@ def use_experiment(cfg: DictConfig) -> str:
     return mlflow.create_experiment(cfg.mlflow.experiment, artifact_location=artifact_location(uri))
 
 
-def flatten(tree: Any, prefix: str = "") -> dict[str, str]:
-    """A nested config as dotted keys with string values, as MLflow params."""
+def flatten(tree: Any, prefix: str = "", leaf: Callable[[Any], str] = str) -> dict[str, str]:
+    """A nested config as dotted keys with its leaves (lists included) as text by `leaf`: `str`, as MLflow params."""
     if isinstance(tree, dict):
         out: dict[str, str] = {}
         for key, value in tree.items():
-            out |= flatten(value, f"{prefix}{key}.")
+            out |= flatten(value, f"{prefix}{key}.", leaf)
         return out
-    return {prefix.rstrip("."): str(tree)}
+    return {prefix.rstrip("."): leaf(tree)}
 
 
 def dvc_dataset_tags(root: Path) -> dict[str, str]:
