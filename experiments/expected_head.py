@@ -34,10 +34,12 @@ do where compact inputs chosen for the measures' spread (`--components`) did not
 learns its local models' amplitudes alone, on equal sections with widths midway between their bounds, to see
 whether placing the local models per part costs more than it gives; with `--align-ends` every
 part's trials (recorded, expected and twins) are aligned on their final depth as `data.align_final_depth` does;
-`--set KEY=VALUE ...` passes Hydra overrides to the family's config (e.g. `head=seat_gaussian`), named in the
-rows' variant; with `--pooled-normaliser` stage 2 divides each trial's squared error by its part's mean force
-variance (times the trial's length) instead of the trial's own squared deviation (`loss=nmse`), to see whether
-a trial that happened to vary little, whose weight is large, is what makes ten recordings noisier to learn
+`--domain dsub|pins|conn` takes a paper domain on the embedded dataset instead of a family (its parts are the
+catalogue's; rows under paper_<domain>/seed_<k>);
+`--set KEY=VALUE ...` passes Hydra overrides to the family's (or domain's) config (e.g. `head=seat_gaussian`),
+named in the rows' variant; with `--pooled-normaliser` stage 2 divides each trial's squared error by its part's
+mean force variance (times the trial's length) instead of the trial's own squared deviation (`loss=nmse`), to see
+whether a trial that happened to vary little, whose weight is large, is what makes ten recordings noisier to learn
 from than their expectation.
 Rows as `parameter_codes.py`'s (summarise.py OUT). Usage (one process of two threads, alone):
   OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2 python experiments/expected_head.py OUT.jsonl --family pins \
@@ -58,7 +60,7 @@ from common import score
 from lead_in import dataset_lead_ins
 from omegaconf import open_dict
 from parameter_codes import generator_parts, parameter_codes, principal_codes, shape_parameters
-from twin_oracle import TWIN_STREAMS, drawn_parts, expected_parts, family_config, pooled, twin_parts
+from twin_oracle import TWIN_STREAMS, drawn_parts, expected_parts, family_config, paper_config, pooled, twin_parts
 
 from pipe.data.alignment import align_final_depth
 from pipe.data.batches import stack_clouds, stack_slices
@@ -75,6 +77,12 @@ from pipe.training.stages import HeadStage
 
 TARGETS = ("recorded", "expected", "expected_test")
 INPUTS = ("geometry", "sections+slices")
+
+
+def run_config(family: str, domain: str | None, seed: int, overrides: list[str]):
+    """The config the heads train in: a paper domain's on the embedded dataset where `domain` names one, else the
+    learning curve's for `family`."""
+    return paper_config(domain, seed, overrides) if domain else family_config(family, seed, overrides)
 
 
 def training_targets(train: list[PartData], val: list[PartData], test: list[PartData],
@@ -201,6 +209,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to")
     ap.add_argument("--family", default="pins")
+    ap.add_argument("--domain", choices=("dsub", "pins", "conn"), default=None,
+                    help="a paper domain on the embedded dataset instead of the family (its catalogue's parts)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--draws", type=int, default=32, help="draws of the unseen conditions per trial")
     ap.add_argument("--epochs", type=int, default=None, help="stage 2's epochs (default: the config's)")
@@ -245,7 +255,8 @@ def main() -> None:
         raise SystemExit(f"unknown target {', '.join(sorted(unknown))}: the targets are {', '.join(TARGETS)}")
     if any(count < 1 for count in args.twins):
         raise SystemExit("--twins counts the twins pooled with a part's own recordings: 1 or more")
-    cfg = family_config(args.family, args.seeds[0], args.overrides)
+    label = f"paper_{args.domain}" if args.domain else args.family
+    cfg = run_config(args.family, args.domain, args.seeds[0], args.overrides)
     if args.components is not None and args.components > cfg.encoder.latent_dim:
         raise SystemExit(f"--components {args.components}: at most the code's size, {cfg.encoder.latent_dim}")
     generator = generator_parts(cfg)      # the parts' parameters alone: neither meshes nor trials
@@ -283,7 +294,7 @@ def main() -> None:
     lead_in = (standardised_log(dataset_lead_ins(data.dataset_dir, [p.name for p in ordered]), len(train))
                if args.lead_in else None)
     for seed in args.seeds:
-        cfg = family_config(args.family, seed, args.overrides)
+        cfg = run_config(args.family, args.domain, seed, args.overrides)
         with open_dict(cfg):
             cfg.code.sections, cfg.code.slices = hand_made, hand_made     # or the head reads the parameters alone
             cfg.trainer.progress_bar = False
@@ -328,7 +339,7 @@ def main() -> None:
             points += "+pooled_normaliser" if args.pooled_normaliser else ""
             points += "".join(f"+{override}" for override in args.overrides)
             variant = f"{args.input}-{target}{points}" + (f"+epochs={args.epochs}" if args.epochs is not None else "")
-            score(args.out, {"run": f"{args.family}/seed_{seed}", "variant": variant, "draws": args.draws,
+            score(args.out, {"run": f"{label}/seed_{seed}", "variant": variant, "draws": args.draws,
                              "seconds": time.perf_counter() - start},
                   cfg, data, model, latents, index)
 

@@ -74,11 +74,12 @@ def family_config(family: str, seed: int, overrides: Sequence[str] = ()):
             "data=family", f"data.generate.family={family}", "domain=curve", f"seed={seed}", *overrides])
 
 
-def paper_config(domain: str, seed: int):
-    """The config of a paper domain (dsub, pins or conn) on the embedded dataset, generated from the catalogue."""
+def paper_config(domain: str, seed: int, overrides: Sequence[str] = ()):
+    """The config of a paper domain (dsub, pins or conn) on the embedded dataset, generated from the catalogue,
+    with further Hydra overrides."""
     os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
     with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
-        return compose(config_name="config", overrides=[f"domain={domain}", f"seed={seed}"])
+        return compose(config_name="config", overrides=[f"domain={domain}", f"seed={seed}", *overrides])
 
 
 def drawn_parts(generate) -> dict[str, Plug | Pin]:

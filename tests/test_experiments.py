@@ -915,6 +915,17 @@ def test_expected_head_refuses_what_it_cannot_run_before_any_work(args, message,
     assert not (tmp_path / "rows.jsonl").exists()
 
 
+def test_expected_head_config_is_the_paper_domains_where_one_is_named_else_the_familys_curve():
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from expected_head import run_config
+
+    paper = run_config("pins", "dsub", 3, ["head.hidden=32"])
+    assert (paper.domain.name, list(paper.domain.test), paper.seed, paper.head.hidden) == ("dsub", ["dsub26"], 3, 32)
+    assert paper.data.generate.get("family") is None                  # the embedded dataset: the catalogue's parts
+    curve = run_config("rect", None, 1, [])
+    assert (curve.domain.name, curve.data.generate.family, curve.seed) == ("curve_rect_100", "rect", 1)
+
+
 def test_expected_head_hand_made_input_is_the_cross_section_and_slices_after_a_code_of_zeros(tiny_data, tmp_path):
     import torch
 
