@@ -41,6 +41,7 @@ from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_tar
 from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
 from summarise import domain_of, read_rows, spread
 
+from pipe.data.alignment import align_final_depth
 from pipe.data.batches import stack_clouds, stack_slices
 from pipe.data.prepared import PartData, PreparedDomain, data_scales
 from pipe.model.pipe_model import PIPEModel
@@ -153,19 +154,21 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
     latents, logvars = unscaled.latent_distribution(clouds, slices)
     targets = (profile_targets(cfg, unscaled, latents, index, pool, fits)
                if any("pretrain" in variant for _, variant in variants) else None)
+    aligned = {p.name: align_final_depth(p) for p in pool}
     for held_out in pool:
         kept = [i for i, p in enumerate(pool) if p is not held_out]
         train = [pool[i] for i in kept]
-        fold = replace(data, splits={"train": train, "val": [], "test": [held_out]})
         if retrain:
             fold_encoder(cfg, encoder, initial_encoder, train)
             own_encoder = copy.deepcopy(encoder.state_dict())
             latents, logvars = unscaled.latent_distribution(clouds, slices)
-        scales = data_scales(train)
         spread = latents[[index[p.name] for p in train]].std(0)
         steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
         for spec, variant in variants:
             encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
+            # align: every part's trials aligned on their final depth (data.align_final_depth), to train and score
+            parts = [aligned[p.name] for p in [*train, held_out]] if "align" in variant else [*train, held_out]
+            fold = replace(data, splits={"train": parts[:-1], "val": [], "test": parts[-1:]})
             trained, initial = heads[spec]
             trained.load_state_dict(initial)
             factor = float(variant.get("sections", 1))
@@ -184,7 +187,8 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 read = torch.cat([read, sliced], dim=1)
                 read_logvars = torch.cat([read_logvars, torch.full_like(sliced, -torch.inf)], dim=1)
                 read_spread = torch.cat([read_spread, sliced[rows].std(0)])
-            model = PIPEModel(encoder, trained, dynamics, *scales, sections=sections, slices=unscaled.slices)
+            model = PIPEModel(encoder, trained, dynamics, *data_scales(parts[:-1]), sections=sections,
+                              slices=unscaled.slices)
             if "pretrain" in variant:
                 pretrain_head(model, ProfileTargets(*(t[kept] for t in targets)), int(variant["pretrain"]))
             run_cfg = variant_config(cfg, variant)
@@ -192,12 +196,12 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                                   lambda: math.nan, {}, clouds)
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
-                fit_module.fit_head(run_cfg, model, read, index, train, [], Path(tmp), False, [], stage)
+                fit_module.fit_head(run_cfg, model, read, index, parts[:-1], [], Path(tmp), False, [], stage)
             with torch.no_grad():
                 codes = model.latent_distribution(clouds, slices)[0] if {"encoder", "mu"} & set(variant) else read
             if "clip" in variant:
                 codes = clipped(codes, [index[p.name] for p in train], float(variant["clip"]))
-            yield Fold(cfg, fold, held_out, spec, model, codes, index, time.perf_counter() - start, retrain)
+            yield Fold(cfg, fold, parts[-1], spec, model, codes, index, time.perf_counter() - start, retrain)
 
 
 def main() -> None:
@@ -222,6 +226,8 @@ def main() -> None:
                              "std and last are not supported here")
         if variant.get("sections", 0) < 0:
             raise SystemExit(f"unsupported variant {spec!r}: the cross-section's weight is at least 0")
+        if {"align", "pretrain"} <= variant.keys():
+            raise SystemExit(f"unsupported variant {spec!r}: pretrain's identified profiles are the unaligned trials'")
     for run in args.runs:
         for fold in fold_models(Path(run), variants, args.fits, args.stage1):
             found = method_fits(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test", ["pipe", "nearest"])

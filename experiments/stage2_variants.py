@@ -34,6 +34,8 @@ loaded, and for each variant the head is trained again from the run's own initia
   slices       (part_cv.py only) the head also reads slices through the part's mesh near its mating end
                (mesh_slices.py), standardised over the fold's training parts: a head of that wider input,
                seeded with the run's seed (+ 1000 K with init=K)
+  align        (part_cv.py only) every part's trials aligned on their final depth (`data.align_final_depth`)
+               for training and scoring, PIPE's and `nearest`'s alike; the codes are the run's
   init=K       the head's initial weights drawn anew, as train.py draws them but under seed + 1000 K (K >= 1):
                another member of an ensemble of heads (head_ensemble_cv.py)
   pretrain=S   the head first takes S Adam steps towards the training parts' identified profiles (gpr's
@@ -175,8 +177,8 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
 
 
 KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr",
-         "pretrain", "hidden", "local", "init", "clip", "sections", "slices", "encoder", "mu")
-PART_CV_ONLY = ("clip", "sections", "slices")     # the kinds that change what a held-out part's code is
+         "pretrain", "hidden", "local", "init", "clip", "sections", "slices", "align", "encoder", "mu")
+PART_CV_ONLY = ("clip", "sections", "slices", "align")     # the kinds that change a held-out part's code or trials
 HEAD_SIZES = {"hidden": "hidden", "local": "num_local_models"}    # variant kind: the head's option it sets
 WORDS = {"select": ("fit",), "loss": tuple(FORCE_LOSSES)}     # the kinds whose value is a word, and their words
 
@@ -253,8 +255,8 @@ def main() -> None:
     variants = [(spec, parse_variant(spec)) for spec in args.variants.split(",")]     # a typo fails before any run
     for spec, variant in variants:
         if set(PART_CV_ONLY) & variant.keys():
-            raise SystemExit(f"unsupported variant {spec!r}: {' and '.join(PART_CV_ONLY)} change the code of a "
-                             "held-out part; run it with part_cv.py")
+            raise SystemExit(f"unsupported variant {spec!r}: {', '.join(PART_CV_ONLY)} change a held-out part's "
+                             "code or trials; run it with part_cv.py")
     for run in args.runs:
         run_dir = kept_folder(Path(run))
         cfg, data, (encoder, head, dynamics) = load_run(run_dir)

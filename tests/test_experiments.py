@@ -79,7 +79,8 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     ("stage2_variants.py", "noise=0.3+select=loss", "unknown variant"), ("stage2_variants.py", "loss", "unknown"),
     ("stage2_variants.py", "mu=0.001+select=fit", "combine with neither"),
     ("stage2_variants.py", "clip=0", "run it with part_cv.py"), ("stage2_variants.py", "sections=0", "part_cv.py"),
-    ("stage2_variants.py", "slices", "part_cv.py"), ("part_cv.py", "slices+hidden=16", "combine with neither"),
+    ("stage2_variants.py", "slices", "part_cv.py"), ("stage2_variants.py", "align", "part_cv.py"),
+    ("part_cv.py", "align+pretrain=5", "unaligned"), ("part_cv.py", "slices+hidden=16", "combine with neither"),
     ("part_cv.py", "slices+sections=0", "combine with neither"),
     ("part_cv.py", "sections=-1", "at least 0"),
     ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
@@ -210,7 +211,7 @@ def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tm
 def test_part_cv_holds_out_each_non_test_part_in_turn(unsliced_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
     # ema=2 differs only if the averaged head is the one kept (before KeptAverage, the default's to the digit)
-    variants = ("default", "loss=mse", "mu=0.01", "ema=2", "sections=0", "sections=3", "slices", "sections=1")
+    variants = ("default", "loss=mse", "mu=0.01", "ema=2", "sections=0", "sections=3", "slices", "align", "sections=1")
     run_script("part_cv.py", str(rows_file), str(unsliced_run.run_dir), "--variants", ",".join(variants))
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     # every training and validation part of the tiny domain held out once per variant; the test part never
