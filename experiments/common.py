@@ -19,10 +19,18 @@ from pipe.pipeline import build_components, build_model, load_domain, training_r
 from pipe.training.force_choice import CANDIDATE_PREFIX, candidate_dirs
 
 
+def require_run(run_dir: Path) -> None:
+    """Stop with a one-line message where `run_dir` is not a trained folder of train.py (no config.yaml)."""
+    if not (run_dir / "config.yaml").is_file():
+        raise SystemExit(f"{run_dir}: not a trained folder of train.py (no config.yaml in it); give a seed folder "
+                         "such as runs/conn/seed_0, relative to where the command runs")
+
+
 def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, PreparedDomain, tuple]:
     """The run's config (progress bar off, `stages.vae.<key>` overrides), its prepared domain and freshly
     built encoder, head and dynamic model, seeded as train.py seeds them (so the head's initial weights are
     the run's own)."""
+    require_run(run_dir)
     cfg = OmegaConf.load(run_dir / "config.yaml")
     with open_dict(cfg):
         cfg.trainer.progress_bar = False
@@ -35,6 +43,7 @@ def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, Prepare
 
 def kept_folder(run_dir: Path) -> Path:
     """The folder of the run's kept candidate where it trained two force weights, else the run's own."""
+    require_run(run_dir)
     return weights_dir(run_dir, training_record(run_dir))
 
 

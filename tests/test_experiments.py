@@ -92,6 +92,15 @@ def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(scri
     assert not (tmp_path / "rows.jsonl").exists()
 
 
+@pytest.mark.parametrize("script", ["part_cv.py", "stage2_variants.py"])
+def test_experiment_scripts_name_a_run_folder_that_is_not_one(script, tmp_path):
+    done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), "no/such/run", "--variants",
+                           "default"], cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "Traceback" not in done.stderr
+    assert "no/such/run: not a trained folder of train.py (no config.yaml in it)" in done.stderr
+    assert not (tmp_path / "rows.jsonl").exists()
+
+
 def test_clipped_codes_stay_within_the_rows_range_widened_by_the_margin():
     import torch
     sys.path.insert(0, str(ROOT / "experiments"))
