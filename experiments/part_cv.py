@@ -127,6 +127,14 @@ def fold_encoder(cfg: DictConfig, encoder: torch.nn.Module, initial: dict[str, t
         fit_module.fit_vae(cfg, encoder, train, [], Path(tmp), False, [])
 
 
+def fold_parts(train: list[PartData], held_out: PartData, variant: dict,
+               aligned: dict[str, PartData]) -> list[PartData]:
+    """A fold's training parts, then its held-out part: for `align`, their versions in `aligned` (each part's
+    trials aligned on their final depth, as data.align_final_depth gives them), to train on and to score."""
+    parts = [*train, held_out]
+    return [aligned[p.name] for p in parts] if "align" in variant else parts
+
+
 def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 stage1: str | None = None) -> Iterator[Fold]:
     """For each non-test part of a finished run held out in turn, and each variant: the head trained again
@@ -166,8 +174,7 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
         steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
         for spec, variant in variants:
             encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
-            # align: every part's trials aligned on their final depth (data.align_final_depth), to train and score
-            parts = [aligned[p.name] for p in [*train, held_out]] if "align" in variant else [*train, held_out]
+            parts = fold_parts(train, held_out, variant, aligned)
             fold = replace(data, splits={"train": parts[:-1], "val": [], "test": parts[-1:]})
             trained, initial = heads[spec]
             trained.load_state_dict(initial)

@@ -234,6 +234,28 @@ def test_part_cv_holds_out_each_non_test_part_in_turn(unsliced_run, tmp_path):
     assert all(by_case[(part, "sections=1")] == pytest.approx(by_case[(part, "default")], abs=1e-9) for part in parts)
 
 
+def test_part_cv_align_trains_and_scores_every_part_of_the_fold_aligned():
+    import numpy as np
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from part_cv import fold_parts
+
+    from pipe.data.alignment import align_final_depth
+    from pipe.data.prepared import PartData
+    from pipe.data.preprocess import Profile
+
+    def part(name: str, ends: list[float]) -> PartData:          # trials whose deepest points differ
+        profiles = [Profile(np.arange(3) * 0.01, np.array([0.0, end / 2, end]), np.zeros(3), None) for end in ends]
+        return PartData(name, cloud=None, profiles=profiles, static_curves=[None] * len(ends))
+
+    pool = [part("a", [10.0, 11.0, 12.5]), part("b", [4.0, 6.0]), part("c", [7.0, 9.0, 8.0])]
+    aligned = {p.name: align_final_depth(p) for p in pool}
+    train, held_out = pool[:2], pool[2]
+    assert fold_parts(train, held_out, {}, aligned) == [*train, held_out]          # the default: as recorded
+    parts = fold_parts(train, held_out, {"align": 0.0}, aligned)
+    assert [p.name for p in parts] == ["a", "b", "c"] and parts[-1] is aligned["c"]
+    assert [[float(t.depth.max()) for t in p.profiles] for p in parts] == [[11.0] * 3, [5.0] * 2, [8.0] * 3]
+
+
 def test_scaled_sections_multiply_the_cross_section_alone():
     import torch
     sys.path.insert(0, str(ROOT / "experiments"))
