@@ -11,7 +11,8 @@ gives its mean and standard deviation over the seeds. Variants as in `stage2_var
 from the held-out part's force there; `--stage1` trains its stage 1 again in each fold on the fold's training
 parts alone (`fold_encoder`), so that nothing of the held-out part's recordings reaches its code; `--stage1
 all` does so for every run (for a run of weight 0, a control: only stage 1's training parts and checkpoint
-rule change).
+rule change). `--blackbox` scores the blackbox baseline on each fold too, trained on the fold's training parts
+for its `evaluation.blackbox_steps` (no validation parts to stop on), reading the same codes.
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/part_cv.py OUT.jsonl runs/pins/seed_{0,1,2} \
       --variants default,loss=mse
@@ -55,22 +56,26 @@ from pipe.training.force_choice import force_weights
 def table(rows: list[dict]) -> str:
     """Per domain and variant: the seeds' mean ± standard deviation of the mean FIT(F) over the held-out parts,
     the median over every held-out part and seed, in how many of those the variant's FIT beats `default`'s, and
-    `nearest`'s FIT reading the same codes as mean ± std where the rows have it (since 2026-11-27)."""
+    the baselines' FIT on the same folds as mean ± std where the rows have it: `nearest` (since 2026-11-27),
+    and the blackbox in a column of its own where any row has it (`--blackbox`)."""
     fits: dict[tuple[str, str], dict[tuple[str, str], float]] = defaultdict(dict)
-    nearest: dict[tuple[str, str], dict[tuple[str, str], float]] = defaultdict(dict)
+    baselines = {name: defaultdict(dict) for name in ("nearest", "blackbox")}
     for row in rows:
         fits[(domain_of(row["run"]), row["variant"])][(row["run"], row["held_out"])] = row["fit"]
-        if "nearest" in row:
-            nearest[(domain_of(row["run"]), row["variant"])][(row["run"], row["held_out"])] = row["nearest"]
-    lines = ["| domain | variant | seeds | FIT(F) [%] | median | above default | nearest |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+        for name, found in baselines.items():
+            if name in row:
+                found[(domain_of(row["run"]), row["variant"])][(row["run"], row["held_out"])] = row[name]
+    shown = ["nearest"] + (["blackbox"] if baselines["blackbox"] else [])
+    lines = ["| domain | variant | seeds | FIT(F) [%] | median | above default | " + " | ".join(shown) + " |",
+             "| --- | --- | --- | --- | --- | --- | " + " | ".join("---" for _ in shown) + " |"]
     for (domain, variant), cases in fits.items():
         default = fits.get((domain, "default"), {})
         paired = [case for case in cases if case in default]
         above = f"{sum(cases[c] > default[c] for c in paired)} of {len(paired)}" if variant != "default" else ""
-        beside = seed_spread(nearest[(domain, variant)]) if (domain, variant) in nearest else ""
+        beside = [seed_spread(baselines[name][(domain, variant)]) if (domain, variant) in baselines[name] else ""
+                  for name in shown]
         lines.append(f"| {domain} | {variant} | {len({run for run, _ in cases})} | {seed_spread(cases)} | "
-                     f"{statistics.median(cases.values()):.2f} | {above} | {beside} |")
+                     f"{statistics.median(cases.values()):.2f} | {above} | " + " | ".join(beside) + " |")
     return "\n".join(lines)
 
 
@@ -219,6 +224,9 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--fits", default=FITS, help="folder for the identified profiles of pretrain=S (relative: to "
                     "the project root)")
+    ap.add_argument("--blackbox", action="store_true",
+                    help="score the blackbox baseline on each fold too (trained on the fold's training parts, its "
+                    "evaluation.blackbox_steps steps: a fold has no validation parts to stop on)")
     ap.add_argument("--stage1", nargs="?", const="force", choices=("force", "all"),
                     help="train stage 1 again in each fold: where it read recordings (a force weight above 0; "
                     "the default of --stage1), or in every run (all)")
@@ -235,11 +243,12 @@ def main() -> None:
             raise SystemExit(f"unsupported variant {spec!r}: the cross-section's weight is at least 0")
         if {"align", "pretrain"} <= variant.keys():
             raise SystemExit(f"unsupported variant {spec!r}: pretrain's identified profiles are the unaligned trials'")
+    baselines = ["nearest", "blackbox"] if args.blackbox else ["nearest"]
     for run in args.runs:
         for fold in fold_models(Path(run), variants, args.fits, args.stage1):
-            found = method_fits(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test", ["pipe", "nearest"])
+            found = method_fits(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test", ["pipe", *baselines])
             row = {"run": str(Path(run)), "variant": fold.variant, "held_out": fold.held_out.name,
-                   "seconds": fold.seconds, "fit": found["pipe"], "nearest": found["nearest"],
+                   "seconds": fold.seconds, "fit": found["pipe"], **{name: found[name] for name in baselines},
                    "stage1_per_fold": fold.stage1_per_fold}
             append_row(args.out, row)
 

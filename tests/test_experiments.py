@@ -284,6 +284,27 @@ def test_part_cv_table_averages_the_held_out_parts_per_seed(tmp_path):
     assert "| pins | loss=nmse | 2 | 50.00 ± 0.00 | 50.00 | 2 of 4 | 40.00 ± 0.00 |" in printed
 
 
+def test_part_cv_table_gives_the_blackbox_a_column_where_the_rows_have_it(tmp_path):
+    rows = [{"run": f"runs/dsub/seed_{seed}", "variant": "default", "held_out": part, "fit": fit,
+             "nearest": fit - 10.0, "blackbox": box}
+            for seed, part, fit, box in [(0, "a", 70.0, 10.0), (0, "b", 50.0, 30.0), (1, "a", 80.0, -50.0),
+                                         (1, "b", 60.0, 10.0)]]
+    printed = printed_table("part_cv.py", rows, tmp_path, "--table")
+    # PIPE: seed means 60 and 70; nearest 10 below; blackbox: seed means 20 and -20
+    assert "| domain | variant | seeds | FIT(F) [%] | median | above default | nearest | blackbox |" in printed
+    assert (f"| dsub | default | 2 | 65.00 ± {statistics.stdev([60.0, 70.0]):.2f} | 65.00 |  | "
+            f"55.00 ± {statistics.stdev([50.0, 60.0]):.2f} | 0.00 ± {statistics.stdev([20.0, -20.0]):.2f} |") in printed
+
+
+@pytest.mark.slow
+def test_part_cv_blackbox_scores_each_fold_beside_pipe_and_nearest(unsliced_run, tmp_path):
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("part_cv.py", str(rows_file), str(unsliced_run.run_dir), "--variants", "default", "--blackbox")
+    rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
+    assert sorted(row["held_out"] for row in rows) == ["dsub15", "dsub9", "vga"]
+    assert all(math.isfinite(row["blackbox"]) and row["blackbox"] != row["nearest"] for row in rows)
+
+
 @pytest.mark.slow
 def test_oracle_starts_reproduce_the_runs_oracle_with_its_own_number_of_starts(trained_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
