@@ -60,7 +60,7 @@ from common import score
 from lead_in import dataset_lead_ins
 from omegaconf import open_dict
 from parameter_codes import generator_parts, parameter_codes, principal_codes, shape_parameters
-from twin_oracle import TWIN_STREAMS, drawn_parts, expected_parts, family_config, paper_config, pooled, twin_parts
+from twin_oracle import TWIN_STREAMS, drawn_parts, expected_parts, pooled, run_config, twin_parts
 
 from pipe.data.alignment import align_final_depth
 from pipe.data.batches import stack_clouds, stack_slices
@@ -77,12 +77,6 @@ from pipe.training.stages import HeadStage
 
 TARGETS = ("recorded", "expected", "expected_test")
 INPUTS = ("geometry", "sections+slices")
-
-
-def run_config(family: str, domain: str | None, seed: int, overrides: list[str]):
-    """The config the heads train in: a paper domain's on the embedded dataset where `domain` names one, else the
-    learning curve's for `family`."""
-    return paper_config(domain, seed, overrides) if domain else family_config(family, seed, overrides)
 
 
 def training_targets(train: list[PartData], val: list[PartData], test: list[PartData],

@@ -82,6 +82,12 @@ def paper_config(domain: str, seed: int, overrides: Sequence[str] = ()):
         return compose(config_name="config", overrides=[f"domain={domain}", f"seed={seed}", *overrides])
 
 
+def run_config(family: str, domain: str | None, seed: int, overrides: Sequence[str] = ()):
+    """A paper domain's config on the embedded dataset where `domain` names one, else the learning curve's for
+    `family`."""
+    return paper_config(domain, seed, overrides) if domain else family_config(family, seed, overrides)
+
+
 def drawn_parts(generate) -> dict[str, Plug | Pin]:
     """The generator's parts of a dataset made by `pipe data generate` (`cfg.data.generate`): the family's
     `family_parts` where it names a family, else the catalogue of the embedded dataset; a dataset of
@@ -193,10 +199,8 @@ def main() -> None:
         rows = read_rows(args.out)
         print(table(rows) + ("\n\n" + part_table(rows) if args.parts else ""))
         return
-    config = (lambda seed: paper_config(args.domain, seed)) if args.domain else (
-        lambda seed: family_config(args.family, seed))
     label = f"paper {args.domain}" if args.domain else args.family
-    cfg = config(args.seeds[0])
+    cfg = run_config(args.family, args.domain, args.seeds[0])
     ltv.set_backend(cfg.simulator)
     data = load_domain(cfg)
     test = data.splits["test"]
@@ -217,7 +221,7 @@ def main() -> None:
             append_row(args.out, row)
             print(label, row["fit"], f"{row['fit_F']:.2f}", flush=True)
     for seed in args.seeds:
-        cfg = config(seed)
+        cfg = run_config(args.family, args.domain, seed)
         ctx = identification_context(cfg, data, test, seed, args.workers)
         restarts = IdentificationSettings.from_config(ctx.settings["identification"]).restarts
         fits = {} if args.skip_own else {"own": None}
