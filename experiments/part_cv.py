@@ -37,6 +37,7 @@ import lightning as L
 import torch
 from common import append_row, kept_folder, load_encoder, load_run
 from common import fits as method_fits
+from lead_in import dataset_lead_ins
 from omegaconf import DictConfig
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
 from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
@@ -48,6 +49,7 @@ from pipe.data.prepared import PartData, PreparedDomain, data_scales
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SectionCode
 from pipe.model.slices import SliceCode
+from pipe.model.standardiser import Standardiser
 from pipe.pipeline import build_model
 from pipe.training import fit as fit_module
 from pipe.training.force_choice import force_weights
@@ -132,6 +134,14 @@ def fold_encoder(cfg: DictConfig, encoder: torch.nn.Module, initial: dict[str, t
         fit_module.fit_vae(cfg, encoder, train, [], Path(tmp), False, [])
 
 
+def lead_in_code(logs: torch.Tensor, rows: list[int]) -> torch.Tensor:
+    """(parts, 1) the logs of the parts' lead-ins (parts, 1) standardised over the fold's training `rows` (a
+    spread below the standardiser's floor raised to it: the generated plugs all measure the grid's first depth)."""
+    standardiser = Standardiser(1)
+    standardiser.fit(logs[rows], "lead-ins")
+    return standardiser.standardise(logs)
+
+
 def fold_parts(train: list[PartData], held_out: PartData, variant: dict,
                aligned: dict[str, PartData]) -> list[PartData]:
     """A fold's training parts, then its held-out part: for `align`, their versions in `aligned` (each part's
@@ -168,6 +178,8 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
     targets = (profile_targets(cfg, unscaled, latents, index, pool, fits)
                if any("pretrain" in variant for _, variant in variants) else None)
     aligned = {p.name: align_final_depth(p) for p in pool}
+    lead_in_logs = (torch.from_numpy(dataset_lead_ins(data.dataset_dir, [p.name for p in pool + test])).log()[:, None]
+                    if any("leadin" in variant for _, variant in variants) else None)
     for held_out in pool:
         kept = [i for i, p in enumerate(pool) if p is not held_out]
         train = [pool[i] for i in kept]
@@ -199,6 +211,12 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 read = torch.cat([read, sliced], dim=1)
                 read_logvars = torch.cat([read_logvars, torch.full_like(sliced, -torch.inf)], dim=1)
                 read_spread = torch.cat([read_spread, sliced[rows].std(0)])
+            if "leadin" in variant:                                         # the lead-in after all of it
+                rows = [index[p.name] for p in train]
+                lead = lead_in_code(lead_in_logs, rows)
+                read = torch.cat([read, lead], dim=1)
+                read_logvars = torch.cat([read_logvars, torch.full_like(lead, -torch.inf)], dim=1)
+                read_spread = torch.cat([read_spread, lead[rows].std(0)])
             model = PIPEModel(encoder, trained, dynamics, *data_scales(parts[:-1]), sections=sections,
                               slices=unscaled.slices)
             if "pretrain" in variant:

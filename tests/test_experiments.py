@@ -80,6 +80,7 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     ("stage2_variants.py", "mu=0.001+select=fit", "combine with neither"),
     ("stage2_variants.py", "clip=0", "run it with part_cv.py"), ("stage2_variants.py", "sections=0", "part_cv.py"),
     ("stage2_variants.py", "slices", "part_cv.py"), ("stage2_variants.py", "align", "part_cv.py"),
+    ("stage2_variants.py", "leadin", "part_cv.py"), ("part_cv.py", "leadin+hidden=16", "combine with neither"),
     ("part_cv.py", "align+pretrain=5", "unaligned"), ("part_cv.py", "slices+hidden=16", "combine with neither"),
     ("part_cv.py", "slices+sections=0", "combine with neither"),
     ("part_cv.py", "sections=-1", "at least 0"),
@@ -220,7 +221,8 @@ def test_force_selection_chooses_by_the_validation_loss_per_seed_and_per_size(tm
 def test_part_cv_holds_out_each_non_test_part_in_turn(unsliced_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
     # ema=2 differs only if the averaged head is the one kept (before KeptAverage, the default's to the digit)
-    variants = ("default", "loss=mse", "mu=0.01", "ema=2", "sections=0", "sections=3", "slices", "align", "sections=1")
+    variants = ("default", "loss=mse", "mu=0.01", "ema=2", "sections=0", "sections=3", "slices", "align", "leadin",
+                "sections=1")
     run_script("part_cv.py", str(rows_file), str(unsliced_run.run_dir), "--variants", ",".join(variants))
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     # every training and validation part of the tiny domain held out once per variant; the test part never
@@ -254,6 +256,22 @@ def test_part_cv_align_trains_and_scores_every_part_of_the_fold_aligned():
     parts = fold_parts(train, held_out, {"align": 0.0}, aligned)
     assert [p.name for p in parts] == ["a", "b", "c"] and parts[-1] is aligned["c"]
     assert [[float(t.depth.max()) for t in p.profiles] for p in parts] == [[11.0] * 3, [5.0] * 2, [8.0] * 3]
+
+
+def test_part_cv_lead_in_code_is_the_log_standardised_over_the_folds_training_parts():
+    import math
+
+    import torch
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from part_cv import lead_in_code
+
+    # training pins of 0.5, 1 and 2 mm: logs -a, 0, a (a = log 2), their mean 0 and spread a; a held-out 4 mm is 2a
+    pins = torch.tensor([[0.5], [1.0], [2.0], [4.0]], dtype=torch.float64).log()
+    assert lead_in_code(pins, [0, 1, 2]).squeeze(1).tolist() == pytest.approx([-1.0, 0.0, 1.0, 2.0], abs=1e-6)
+    # plugs all measure the grid's first depth: a spread of 0, raised to the floor of 0.05; a pin beside them
+    plugs = torch.tensor([[0.01], [0.01], [0.01], [0.01], [0.5]], dtype=torch.float64).log()
+    assert lead_in_code(plugs, [0, 1, 2]).squeeze(1).tolist() == pytest.approx(
+        [0.0, 0.0, 0.0, 0.0, math.log(50) / 0.05], rel=1e-6)
 
 
 def test_scaled_sections_multiply_the_cross_section_alone():
