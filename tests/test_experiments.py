@@ -898,6 +898,9 @@ def test_twin_oracle_only_keeps_the_named_test_parts_in_the_splits_order_and_ref
     assert [p.name for p in only_parts(test, ["rect_0018", "rect_0010"], "rect")] == ["rect_0010", "rect_0018"]
     with pytest.raises(SystemExit, match="--only rect_0099: not a test part of rect"):
         only_parts(test, ["rect_0010", "rect_0099"], "rect")
+    # aligned_oracle.py --domain chooses among every part of a paper domain, and says so when refusing
+    with pytest.raises(SystemExit, match="--only dsub99: not a part of dsub"):
+        only_parts(test, ["dsub99"], "dsub", "a part")
 
 
 def test_twin_oracle_table_gives_each_fit_over_the_seeds_and_the_median_part(tmp_path):
