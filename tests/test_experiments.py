@@ -1216,3 +1216,18 @@ def test_expected_head_twin_targets_pool_each_part_with_its_first_twins_trials()
     assert three_train[0].profiles == ["a:own", "a:1", "a:2", "a:3"]
     assert len(three_train[0].static_curves) == 4
     assert twin_targets(train, val, twins, []) == {}
+
+
+def test_extrapolation_distance_ratio_and_table_by_hand():
+    import torch
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from extrapolation import distance_ratio, table
+
+    # parts at 0, 1, 3 and 7 on a line: nearest others 1, 1, 2 and 4, their median 1.5
+    codes = torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [7.0, 0.0]])
+    assert distance_ratio(codes).tolist() == pytest.approx([2 / 3, 2 / 3, 4 / 3, 8 / 3])
+    rows = [{"run": "runs/conn/seed_0", "part": "rj45", "ratio": 3.0, "fit": -100.0},
+            {"run": "runs/conn/seed_1", "part": "rj45", "ratio": 2.0, "fit": -50.0},
+            {"run": "runs/conn/seed_0", "part": "vga", "ratio": 0.5, "fit": 80.0}]
+    lines = table(rows).splitlines()
+    assert lines[2:] == ["| conn | rj45 | 2.50 | -75.00 | 2 |", "| conn | vga | 0.50 | 80.00 | 1 |"]

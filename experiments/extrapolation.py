@@ -1,0 +1,82 @@
+"""Issue 9: are the cross-validation's collapses the parts farthest from the others in what the head reads?
+
+In the cross-validation over the paper domains' non-test parts (`part_cv.py`) a few held-out parts score far
+below 0 % FIT(F) (conn's rj45, pins' dowel5) and rule the domains' means and spreads. Here each non-test part's
+distance to its nearest other non-test part, in the input the run's head reads (the encoder's code, then the
+cross-section and the slices as the model standardised them), over the median of those distances in the run:
+the distance a held-out part is from the fold's training parts, in units of how close the parts are to each
+other. Beside it, PIPE's FIT(F) on that part from the cross-validation's rows (variant `default`). One row per
+run and part, printed and appended to OUT; `--table` prints each part's ratio and FIT, means over the runs.
+Usage:
+  python experiments/extrapolation.py OUT.jsonl docs/experiments/part_cv_leadin_paper.jsonl \
+      runs/{pins,dsub,conn}/seed_{0,1,2}
+  python experiments/extrapolation.py OUT.jsonl --table
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+from collections import defaultdict
+from pathlib import Path
+
+import torch
+from common import append_row, kept_folder, load_encoder, load_run
+from summarise import domain_of, read_rows
+
+from pipe.data.batches import stack_clouds, stack_slices
+from pipe.pipeline import build_model
+
+
+def distance_ratio(codes: torch.Tensor) -> torch.Tensor:
+    """(parts,) each row's Euclidean distance to its nearest other row of `codes` (parts, size), over the median
+    of those distances."""
+    distances = torch.cdist(codes.double(), codes.double())
+    distances.fill_diagonal_(torch.inf)
+    nearest = distances.min(1).values
+    return nearest / nearest.quantile(0.5)        # torch's median() is the lower middle value of an even count
+
+
+def table(rows: list[dict]) -> str:
+    """Per domain, its parts from the farthest: the ratio and PIPE's cross-validated FIT(F), means over the runs."""
+    cases: dict[str, dict[str, list[tuple[float, float]]]] = defaultdict(lambda: defaultdict(list))
+    for row in rows:
+        cases[domain_of(row["run"])][row["part"]].append((row["ratio"], row["fit"]))
+    lines = ["| domain | part | distance ratio | PIPE's FIT(F) [%] | runs |", "| --- | --- | --- | --- | --- |"]
+    for domain, parts in cases.items():
+        means = {part: [statistics.fmean(v) for v in zip(*found)] for part, found in parts.items()}
+        for part, (ratio, fit) in sorted(means.items(), key=lambda item: -item[1][0]):
+            lines.append(f"| {domain} | {part} | {ratio:.2f} | {fit:.2f} | {len(parts[part])} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
+    ap.add_argument("cv", nargs="?", help="part_cv.py's rows of these runs (their `default` variant)")
+    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
+    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    args = ap.parse_args()
+    if args.table:
+        print(table(read_rows(args.out)))
+        return
+    if args.cv is None or not args.runs:
+        raise SystemExit("give part_cv.py's rows and the run folders they were made on")
+    fits = {(row["run"], row["held_out"]): row["fit"] for row in read_rows(args.cv) if row["variant"] == "default"}
+    for run in args.runs:
+        run_dir = kept_folder(Path(run))
+        cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+        load_encoder(encoder, run_dir)
+        model = build_model(cfg, data, (encoder, head, dynamics))
+        pool = data.splits["train"] + data.splits["val"]
+        if missing := [p.name for p in pool if (run, p.name) not in fits]:
+            raise SystemExit(f"{args.cv}: no `default` row of {run} holding out {', '.join(missing)}")
+        with torch.no_grad():
+            codes = model.latent_distribution(stack_clouds(pool), stack_slices(pool))[0]
+        for part, ratio in zip(pool, distance_ratio(codes).tolist()):
+            append_row(args.out, {"run": run, "part": part.name, "ratio": ratio, "fit": fits[(run, part.name)]})
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    main()
