@@ -7,10 +7,14 @@ cross-section and the slices as the model standardised them), over the median of
 the distance a held-out part is from the fold's training parts, in units of how close the parts are to each
 other. Beside it, PIPE's FIT(F) on that part from the cross-validation's rows (variant `default`). One row per
 run and part, printed and appended to OUT; `--table` prints each part's ratio and FIT, means over the runs.
+`--forces PART ...` instead trains the cross-validation's folds again (`part_cv.fold_models`, `default`) and,
+for the named held-out parts, compares PIPE's and `nearest`'s predicted force with the measured one: the
+peak of |F| and the mean of F, each averaged over the part's trials (too much force, too little, or a shape).
 Usage:
   python experiments/extrapolation.py OUT.jsonl docs/experiments/part_cv_leadin_paper.jsonl \
       runs/{pins,dsub,conn}/seed_{0,1,2}
   python experiments/extrapolation.py OUT.jsonl --table
+  python experiments/extrapolation.py OUT.jsonl runs/conn/seed_0 --forces rj45 hdmi
 """
 from __future__ import annotations
 
@@ -20,8 +24,12 @@ import statistics
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import torch
-from common import append_row, kept_folder, load_encoder, load_run
+from common import append_row, kept_folder, load_encoder, load_run, results
+from part_cv import fold_models
+from profile_pretraining import FITS
+from stage2_variants import parse_variant
 from summarise import domain_of, read_rows
 
 from pipe.data.batches import stack_clouds, stack_slices
@@ -40,7 +48,7 @@ def distance_ratio(codes: torch.Tensor) -> torch.Tensor:
 def table(rows: list[dict]) -> str:
     """Per domain, its parts from the farthest: the ratio and PIPE's cross-validated FIT(F), means over the runs."""
     cases: dict[str, dict[str, list[tuple[float, float]]]] = defaultdict(lambda: defaultdict(list))
-    for row in rows:
+    for row in (row for row in rows if "ratio" in row):        # not the rows of --forces
         cases[domain_of(row["run"])][row["part"]].append((row["ratio"], row["fit"]))
     lines = ["| domain | part | distance ratio | PIPE's FIT(F) [%] | runs |", "| --- | --- | --- | --- | --- |"]
     for domain, parts in cases.items():
@@ -50,15 +58,44 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def fold_forces(run: str, names: list[str]) -> list[dict]:
+    """For each named non-test part of `run` held out in the cross-validation: PIPE's and `nearest`'s FIT(F),
+    and their predicted against the measured force's peak |F| and mean F, averaged over the part's trials."""
+    rows = []
+    for fold in fold_models(Path(run), [("default", parse_variant("default"))], FITS):
+        if fold.held_out.name not in names:
+            continue
+        found = results(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test", ["pipe", "nearest"])
+        measured = [trial.force for trial in fold.held_out.profiles]
+        row = {"run": run, "part": fold.held_out.name, "measured": force_summary(measured)}
+        for method, result in found.items():
+            row[method] = {"fit": result.domain["fit_F"], **force_summary(result.forces[fold.held_out.name])}
+        rows.append(row)
+    return rows
+
+
+def force_summary(forces: list[np.ndarray]) -> dict[str, float]:
+    """The peak of |F| and the mean of F, each averaged over the trials."""
+    return {"peak": float(np.mean([np.abs(f).max() for f in forces])),
+            "mean": float(np.mean([np.mean(f) for f in forces]))}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
     ap.add_argument("cv", nargs="?", help="part_cv.py's rows of these runs (their `default` variant)")
     ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap.add_argument("--forces", nargs="+", metavar="PART", help="the named held-out parts' forces instead, of the "
+                    "runs given (here the first positional after OUT is a run too)")
     args = ap.parse_args()
     if args.table:
         print(table(read_rows(args.out)))
+        return
+    if args.forces:
+        for run in [args.cv, *args.runs]:
+            for row in fold_forces(run, args.forces):
+                append_row(args.out, row)
         return
     if args.cv is None or not args.runs:
         raise SystemExit("give part_cv.py's rows and the run folders they were made on")

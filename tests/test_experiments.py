@@ -1231,3 +1231,32 @@ def test_extrapolation_distance_ratio_and_table_by_hand():
             {"run": "runs/conn/seed_0", "part": "vga", "ratio": 0.5, "fit": 80.0}]
     lines = table(rows).splitlines()
     assert lines[2:] == ["| conn | rj45 | 2.50 | -75.00 | 2 |", "| conn | vga | 0.50 | 80.00 | 1 |"]
+
+
+def test_extrapolation_force_summary_by_hand():
+    import numpy as np
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from extrapolation import force_summary
+
+    # peaks of |F| 2 and 1, means -1/3 and 1
+    summary = force_summary([np.array([0.0, -2.0, 1.0]), np.array([1.0, 1.0, 1.0])])
+    assert summary == pytest.approx({"peak": 1.5, "mean": 1 / 3})
+
+
+@pytest.mark.slow
+def test_extrapolation_rows_match_part_cv_on_the_same_folds(trained_run, tmp_path):
+    cv_file, ratio_file, forces_file = tmp_path / "cv.jsonl", tmp_path / "ratio.jsonl", tmp_path / "forces.jsonl"
+    run = str(trained_run.run_dir)
+    run_script("part_cv.py", str(cv_file), run, "--variants", "default")
+    run_script("extrapolation.py", str(ratio_file), str(cv_file), run)
+    run_script("extrapolation.py", str(forces_file), run, "--forces", "vga")
+    cv = {row["held_out"]: row for row in map(json.loads, cv_file.read_text().splitlines())}
+    ratios = [json.loads(line) for line in ratio_file.read_text().splitlines()]
+    # every non-test part once, with its cross-validated FIT; of three parts the middle one is the median
+    assert {row["part"]: row["fit"] for row in ratios} == {part: row["fit"] for part, row in cv.items()}
+    assert sorted(row["ratio"] for row in ratios)[1] == pytest.approx(1.0)
+    # the folds trained again give part_cv's FIT for PIPE and `nearest`
+    (forces,) = [json.loads(line) for line in forces_file.read_text().splitlines()]
+    assert forces["part"] == "vga" and forces["measured"]["peak"] > 0
+    assert forces["pipe"]["fit"] == pytest.approx(cv["vga"]["fit"], abs=1e-9)
+    assert forces["nearest"]["fit"] == pytest.approx(cv["vga"]["nearest"], abs=1e-9)
