@@ -11,8 +11,8 @@ run and part, printed and appended to OUT; `--table` prints each part's ratio an
 for the named held-out parts, compares PIPE's and `nearest`'s predicted force with the measured one: the
 peak of |F| and the mean of F, each averaged over the part's trials (too much force, too little, or a shape).
 Usage:
-  python experiments/extrapolation.py OUT.jsonl docs/experiments/part_cv_leadin_paper.jsonl \
-      runs/{pins,dsub,conn}/seed_{0,1,2}
+  python experiments/extrapolation.py OUT.jsonl runs/{pins,dsub,conn}/seed_{0,1,2} \
+      --cv docs/experiments/part_cv_leadin_paper.jsonl
   python experiments/extrapolation.py OUT.jsonl --table
   python experiments/extrapolation.py OUT.jsonl runs/conn/seed_0 --forces rj45 hdmi
 """
@@ -83,22 +83,23 @@ def force_summary(forces: list[np.ndarray]) -> dict[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
-    ap.add_argument("cv", nargs="?", help="part_cv.py's rows of these runs (their `default` variant)")
     ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
+    ap.add_argument("--cv", metavar="FILE", help="part_cv.py's rows of these runs (their `default` variant)")
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
-    ap.add_argument("--forces", nargs="+", metavar="PART", help="the named held-out parts' forces instead, of the "
-                    "runs given (here the first positional after OUT is a run too)")
+    ap.add_argument("--forces", nargs="+", metavar="PART", help="the named held-out parts' forces instead")
     args = ap.parse_args()
     if args.table:
         print(table(read_rows(args.out)))
         return
+    if not args.runs:
+        raise SystemExit("give the run folders")
     if args.forces:
-        for run in [args.cv, *args.runs]:
+        for run in args.runs:
             for row in fold_forces(run, args.forces):
                 append_row(args.out, row)
         return
-    if args.cv is None or not args.runs:
-        raise SystemExit("give part_cv.py's rows and the run folders they were made on")
+    if args.cv is None:
+        raise SystemExit("give part_cv.py's rows of these runs: --cv FILE")
     fits = {(row["run"], row["held_out"]): row["fit"] for row in read_rows(args.cv) if row["variant"] == "default"}
     for run in args.runs:
         run_dir = kept_folder(Path(run))

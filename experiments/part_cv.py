@@ -135,8 +135,8 @@ def fold_encoder(cfg: DictConfig, encoder: torch.nn.Module, initial: dict[str, t
 
 
 def lead_in_code(logs: torch.Tensor, rows: list[int]) -> torch.Tensor:
-    """(parts, 1) the logs of the parts' lead-ins (parts, 1) standardised over the fold's training `rows` (a
-    spread below the standardiser's floor raised to it: the generated plugs all measure the grid's first depth)."""
+    """The logs of the parts' lead-ins (parts, 1), standardised over the fold's training `rows` (a spread below
+    the standardiser's floor raised to it: the generated plugs all measure the grid's first depth)."""
     standardiser = Standardiser(1)
     standardiser.fit(logs[rows], "lead-ins")
     return standardiser.standardise(logs)

@@ -168,12 +168,12 @@ def pooled(twins: list[list[PartData]]) -> list[PartData]:
                     static_curves=[s for twin in same for s in twin.static_curves]) for same in zip(*twins)]
 
 
-def only_parts(test: list[PartData], names: list[str], family: str, what: str = "a test part") -> list[PartData]:
-    """The parts of `test` (the test parts, or `what` they are) named in `names`, in its order; a name that is
-    not among them is refused."""
-    if unknown := set(names) - {p.name for p in test}:
+def only_parts(parts: list[PartData], names: list[str], family: str, what: str = "a test part") -> list[PartData]:
+    """The `parts` (the test parts, or `what` they are) named in `names`, in their order; a name that is not
+    among them is refused."""
+    if unknown := set(names) - {p.name for p in parts}:
         raise SystemExit(f"--only {', '.join(sorted(unknown))}: not {what} of {family}")
-    return [p for p in test if p.name in names]
+    return [p for p in parts if p.name in names]
 
 
 def main() -> None:

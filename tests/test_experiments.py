@@ -1248,7 +1248,7 @@ def test_extrapolation_rows_match_part_cv_on_the_same_folds(trained_run, tmp_pat
     cv_file, ratio_file, forces_file = tmp_path / "cv.jsonl", tmp_path / "ratio.jsonl", tmp_path / "forces.jsonl"
     run = str(trained_run.run_dir)
     run_script("part_cv.py", str(cv_file), run, "--variants", "default")
-    run_script("extrapolation.py", str(ratio_file), str(cv_file), run)
+    run_script("extrapolation.py", str(ratio_file), run, "--cv", str(cv_file))
     run_script("extrapolation.py", str(forces_file), run, "--forces", "vga")
     cv = {row["held_out"]: row for row in map(json.loads, cv_file.read_text().splitlines())}
     ratios = [json.loads(line) for line in ratio_file.read_text().splitlines()]
