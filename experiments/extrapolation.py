@@ -7,9 +7,10 @@ cross-section and the slices as the model standardised them), over the median of
 the distance a held-out part is from the fold's training parts, in units of how close the parts are to each
 other. Beside it, PIPE's FIT(F) on that part from the cross-validation's rows (variant `default`). One row per
 run and part, printed and appended to OUT; `--table` prints each part's ratio and FIT, means over the runs.
-`--forces PART ...` instead trains the cross-validation's folds again (`part_cv.fold_models`, `default`) and,
-for the named held-out parts, compares PIPE's and `nearest`'s predicted force with the measured one: the
-peak of |F| and the mean of F, each averaged over the part's trials (too much force, too little, or a shape).
+`--forces PART ...` instead trains the cross-validation's folds that hold out the named parts again
+(`part_cv.fold_models`, `default`) and, for those parts, compares PIPE's and `nearest`'s predicted force with
+the measured one: the peak of |F| and the mean of F, each averaged over the part's trials (too much force, too
+little, or a shape).
 Usage:
   python experiments/extrapolation.py OUT.jsonl runs/{pins,dsub,conn}/seed_{0,1,2} \
       --cv docs/experiments/part_cv_leadin_paper.jsonl
@@ -32,7 +33,7 @@ from profile_pretraining import FITS
 from stage2_variants import parse_variant
 from summarise import domain_of, read_rows
 
-from pipe.data.batches import stack_clouds, stack_slices
+from pipe.data.batches import stack_geometry
 from pipe.pipeline import build_model
 
 
@@ -62,9 +63,7 @@ def fold_forces(run: str, names: list[str]) -> list[dict]:
     """For each named non-test part of `run` held out in the cross-validation: PIPE's and `nearest`'s FIT(F),
     and their predicted against the measured force's peak |F| and mean F, averaged over the part's trials."""
     rows = []
-    for fold in fold_models(Path(run), [("default", parse_variant("default"))], FITS):
-        if fold.held_out.name not in names:
-            continue
+    for fold in fold_models(Path(run), [("default", parse_variant("default"))], FITS, only=set(names)):
         found = results(fold.cfg, fold.data, fold.model, fold.codes, fold.index, "test", ["pipe", "nearest"])
         measured = [trial.force for trial in fold.held_out.profiles]
         row = {"run": run, "part": fold.held_out.name, "measured": force_summary(measured)}
@@ -110,7 +109,7 @@ def main() -> None:
         if missing := [p.name for p in pool if (run, p.name) not in fits]:
             raise SystemExit(f"{args.cv}: no `default` row of {run} holding out {', '.join(missing)}")
         with torch.no_grad():
-            codes = model.latent_distribution(stack_clouds(pool), stack_slices(pool))[0]
+            codes = model.latent_distribution(*stack_geometry(pool))[0]
         for part, ratio in zip(pool, distance_ratio(codes).tolist()):
             append_row(args.out, {"run": run, "part": part.name, "ratio": ratio, "fit": fits[(run, part.name)]})
 

@@ -151,12 +151,12 @@ def fold_parts(train: list[PartData], held_out: PartData, variant: dict,
 
 
 def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
-                stage1: str | None = None) -> Iterator[Fold]:
+                stage1: str | None = None, only: set[str] | None = None) -> Iterator[Fold]:
     """For each non-test part of a finished run held out in turn, and each variant: the head trained again
     from the run's initial weights on the run's stage-1 encoder (its kept candidate's, where it trained two),
     on the other non-test parts. Where `retrains_stage1(cfg, stage1)` (stage1="force": the run's stage 1 read
     recordings, so it learnt from the held-out part's force), stage 1 is trained again per fold too
-    (`fold_encoder`)."""
+    (`fold_encoder`). `only`: the folds that hold out these parts alone, the others not trained."""
     run_dir = kept_folder(run_dir)
     cfg, data, (encoder, head, dynamics) = load_run(run_dir)
     initial_encoder = copy.deepcopy(encoder.state_dict())
@@ -181,13 +181,16 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
     lead_in_logs = (torch.from_numpy(dataset_lead_ins(data.dataset_dir, [p.name for p in pool + test])).log()[:, None]
                     if any("leadin" in variant for _, variant in variants) else None)
     for held_out in pool:
+        if only is not None and held_out.name not in only:
+            continue
         kept = [i for i, p in enumerate(pool) if p is not held_out]
         train = [pool[i] for i in kept]
+        rows = [index[p.name] for p in train]
         if retrain:
             fold_encoder(cfg, encoder, initial_encoder, train)
             own_encoder = copy.deepcopy(encoder.state_dict())
             latents, logvars = unscaled.latent_distribution(clouds, slices)
-        spread = latents[[index[p.name] for p in train]].std(0)
+        spread = latents[rows].std(0)
         steps = math.ceil(sum(len(p.profiles) for p in train) / cfg.stages.head.batch_size)
         for spec, variant in variants:
             encoder.load_state_dict(own_encoder)     # the run's own again after a fold that fine-tuned it
@@ -206,13 +209,11 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 weights = section_weights(encoder.latent_dim, latents.shape[1], factor)
                 read, read_logvars, read_spread = latents * weights, logvars, spread * weights
             if "slices" in variant:                                         # the mesh's slices after it
-                rows = [index[p.name] for p in train]
                 sliced = SliceCode.fitted(slices[rows])(slices)
                 read = torch.cat([read, sliced], dim=1)
                 read_logvars = torch.cat([read_logvars, torch.full_like(sliced, -torch.inf)], dim=1)
                 read_spread = torch.cat([read_spread, sliced[rows].std(0)])
             if "leadin" in variant:                                         # the lead-in after all of it
-                rows = [index[p.name] for p in train]
                 lead = lead_in_code(lead_in_logs, rows)
                 read = torch.cat([read, lead], dim=1)
                 read_logvars = torch.cat([read_logvars, torch.full_like(lead, -torch.inf)], dim=1)
@@ -230,7 +231,7 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
             with torch.no_grad():
                 codes = model.latent_distribution(clouds, slices)[0] if {"encoder", "mu"} & set(variant) else read
             if "clip" in variant:
-                codes = clipped(codes, [index[p.name] for p in train], float(variant["clip"]))
+                codes = clipped(codes, rows, float(variant["clip"]))
             yield Fold(cfg, fold, parts[-1], spec, model, codes, index, time.perf_counter() - start, retrain)
 
 
