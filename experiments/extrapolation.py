@@ -5,8 +5,11 @@ below 0 % FIT(F) (conn's rj45, pins' dowel5) and rule the domains' means and spr
 distance to its nearest other non-test part, in the input the run's head reads (the encoder's code, then the
 cross-section and the slices as the model standardised them), over the median of those distances in the run:
 the distance a held-out part is from the fold's training parts, in units of how close the parts are to each
-other. Beside it, PIPE's FIT(F) on that part from the cross-validation's rows (variant `default`). One row per
-run and part, printed and appended to OUT; `--table` prints each part's ratio and FIT, means over the runs.
+other; and what predict.py's warning reads (`pipe.model.novelty`): the part's distance to the fold's training
+parts (the others) over their coverage radius, the largest distance from one of them to its nearest other one
+(above 1: flagged). Beside them, PIPE's FIT(F) on that part from the cross-validation's rows (variant
+`default`). One row per run and part, printed and appended to OUT; `--table` prints each part's ratios and FIT,
+means over the runs, and which held-out cases the warning flags.
 `--forces PART ...` instead trains the cross-validation's folds that hold out the named parts again
 (`part_cv.fold_models`, `default`) and, for those parts, compares PIPE's and `nearest`'s predicted force with
 the measured one: the peak of |F| and the mean of F, each averaged over the part's trials (too much force, too
@@ -34,6 +37,7 @@ from stage2_variants import parse_variant
 from summarise import domain_of, read_rows
 
 from pipe.data.batches import stack_geometry
+from pipe.model.novelty import novelty
 from pipe.pipeline import build_model
 
 
@@ -46,16 +50,34 @@ def distance_ratio(codes: torch.Tensor) -> torch.Tensor:
     return nearest / nearest.quantile(0.5)        # torch's median() is the lower middle value of an even count
 
 
+def held_out_coverage(codes: torch.Tensor) -> list[float]:
+    """Each row's distance to the other rows of `codes` (parts, size) over their coverage radius: what
+    predict.py's warning reads of a part held out from the rest."""
+    names = [str(i) for i in range(len(codes))]
+    found = []
+    for i in range(len(codes)):
+        others = [j for j in range(len(codes)) if j != i]
+        (item,) = novelty(codes[i:i + 1], codes[others], [names[j] for j in others])
+        found.append(item.ratio)
+    return found
+
+
 def table(rows: list[dict]) -> str:
-    """Per domain, its parts from the farthest: the ratio and PIPE's cross-validated FIT(F), means over the runs."""
-    cases: dict[str, dict[str, list[tuple[float, float]]]] = defaultdict(lambda: defaultdict(list))
-    for row in (row for row in rows if "ratio" in row):        # not the rows of --forces
-        cases[domain_of(row["run"])][row["part"]].append((row["ratio"], row["fit"]))
-    lines = ["| domain | part | distance ratio | PIPE's FIT(F) [%] | runs |", "| --- | --- | --- | --- | --- |"]
+    """Per domain, its parts from the farthest: the ratio, the distance over the coverage radius and PIPE's
+    cross-validated FIT(F), means over the runs; then the held-out cases above the radius."""
+    cases: dict[str, dict[str, list[tuple[float, float, float]]]] = defaultdict(lambda: defaultdict(list))
+    ratios = [row for row in rows if "ratio" in row]          # not the rows of --forces
+    for row in ratios:
+        cases[domain_of(row["run"])][row["part"]].append((row["ratio"], row["coverage"], row["fit"]))
+    lines = ["| domain | part | distance ratio | over the coverage radius | PIPE's FIT(F) [%] | runs |",
+             "| --- | --- | --- | --- | --- | --- |"]
     for domain, parts in cases.items():
         means = {part: [statistics.fmean(v) for v in zip(*found)] for part, found in parts.items()}
-        for part, (ratio, fit) in sorted(means.items(), key=lambda item: -item[1][0]):
-            lines.append(f"| {domain} | {part} | {ratio:.2f} | {fit:.2f} | {len(parts[part])} |")
+        for part, (ratio, coverage, fit) in sorted(means.items(), key=lambda item: -item[1][0]):
+            lines.append(f"| {domain} | {part} | {ratio:.2f} | {coverage:.2f} | {fit:.2f} | {len(parts[part])} |")
+    flagged = [row for row in ratios if row["coverage"] > 1.0]
+    lines += ["", f"Above the coverage radius: {len(flagged)} of {len(ratios)} held-out cases"
+              + "".join(f"; {row['part']} ({domain_of(row['run'])}, FIT {row['fit']:.1f})" for row in flagged)]
     return "\n".join(lines)
 
 
@@ -110,8 +132,9 @@ def main() -> None:
             raise SystemExit(f"{args.cv}: no `default` row of {run} holding out {', '.join(missing)}")
         with torch.no_grad():
             codes = model.latent_distribution(*stack_geometry(pool))[0]
-        for part, ratio in zip(pool, distance_ratio(codes).tolist()):
-            append_row(args.out, {"run": run, "part": part.name, "ratio": ratio, "fit": fits[(run, part.name)]})
+        for part, ratio, coverage in zip(pool, distance_ratio(codes).tolist(), held_out_coverage(codes)):
+            append_row(args.out, {"run": run, "part": part.name, "ratio": ratio, "coverage": coverage,
+                                  "fit": fits[(run, part.name)]})
 
 
 if __name__ == "__main__":

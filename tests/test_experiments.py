@@ -1221,16 +1221,20 @@ def test_expected_head_twin_targets_pool_each_part_with_its_first_twins_trials()
 def test_extrapolation_distance_ratio_and_table_by_hand():
     import torch
     sys.path.insert(0, str(ROOT / "experiments"))
-    from extrapolation import distance_ratio, table
+    from extrapolation import distance_ratio, held_out_coverage, table
 
     # parts at 0, 1, 3 and 7 on a line: nearest others 1, 1, 2 and 4, their median 1.5
     codes = torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [7.0, 0.0]])
     assert distance_ratio(codes).tolist() == pytest.approx([2 / 3, 2 / 3, 4 / 3, 8 / 3])
-    rows = [{"run": "runs/conn/seed_0", "part": "rj45", "ratio": 3.0, "fit": -100.0},
-            {"run": "runs/conn/seed_1", "part": "rj45", "ratio": 2.0, "fit": -50.0},
-            {"run": "runs/conn/seed_0", "part": "vga", "ratio": 0.5, "fit": 80.0}]
+    # held out in turn: 0 is 1 from {1, 3, 7}, whose radius is 4; 1 is 1 from {0, 3, 7} (4); 3 is 2 from
+    # {0, 1, 7} (6); 7 is 4 from {0, 1, 3} (2)
+    assert held_out_coverage(codes) == pytest.approx([1 / 4, 1 / 4, 1 / 3, 2.0])
+    rows = [{"run": "runs/conn/seed_0", "part": "rj45", "ratio": 3.0, "coverage": 1.5, "fit": -100.0},
+            {"run": "runs/conn/seed_1", "part": "rj45", "ratio": 2.0, "coverage": 0.9, "fit": -50.0},
+            {"run": "runs/conn/seed_0", "part": "vga", "ratio": 0.5, "coverage": 0.2, "fit": 80.0}]
     lines = table(rows).splitlines()
-    assert lines[2:] == ["| conn | rj45 | 2.50 | -75.00 | 2 |", "| conn | vga | 0.50 | 80.00 | 1 |"]
+    assert lines[2:4] == ["| conn | rj45 | 2.50 | 1.20 | -75.00 | 2 |", "| conn | vga | 0.50 | 0.20 | 80.00 | 1 |"]
+    assert lines[-1] == "Above the coverage radius: 1 of 3 held-out cases; rj45 (conn, FIT -100.0)"
 
 
 def test_extrapolation_force_summary_by_hand():

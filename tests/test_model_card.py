@@ -12,13 +12,15 @@ from pipe.model.card import CARD_VERSION, ModelCard
 from pipe.predict import load_model
 
 CARD = ModelCard(domain="conn", points=1024, cloud_seed=0, rate_hz=100.0, parameter_names=("a0", "a1", "a2", "b0"),
-                 train_parts=("dsub9", "usba"), train_size_mm=(12.5, 55.0), depth_scale_mm=8.0, force_scale_n=20.0)
+                 train_parts=("dsub9", "usba"), train_size_mm=(12.5, 55.0), depth_scale_mm=8.0, force_scale_n=20.0,
+                 reference_codes=((0.5, -1.25, 2.0), (0.0, 3.5, -0.75)))
 
 
 def test_a_card_survives_the_round_trip_through_plain_types():
     doc = CARD.to_dict()
     assert doc["card_version"] == CARD_VERSION and doc["parameter_names"] == ["a0", "a1", "a2", "b0"]
     assert ModelCard.from_dict(doc, "here") == CARD
+    assert doc["reference_codes"] == [[0.5, -1.25, 2.0], [0.0, 3.5, -0.75]]
 
 
 @pytest.mark.parametrize("change, message", [
@@ -28,6 +30,9 @@ def test_a_card_survives_the_round_trip_through_plain_types():
     ({"train_size_mm": [3.0]}, "is broken (IndexError"),
     ({"band": {"level": 0.9}}, "is broken (KeyError"),
     ({"colour": "red"}, "unknown ['colour']"),
+    ({"reference_codes": [[0.5, 1.0]]}, "reference_codes holds 1 rows of sizes [2] for 2 training parts"),
+    ({"reference_codes": [[0.5, 1.0], [2.0]]}, "reference_codes holds 2 rows of sizes [1, 2] for 2 training parts"),
+    ({"reference_codes": [[0.5, "x"], [1.0, 2.0]]}, "is broken (ValueError"),
 ])
 def test_an_incompatible_or_broken_card_is_refused_clearly(change, message):
     doc = {k: v for k, v in (CARD.to_dict() | change).items() if v is not None}

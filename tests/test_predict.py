@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import subprocess
@@ -9,6 +10,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 from conftest import ROOT
 
@@ -70,7 +72,7 @@ def test_predict_errors_are_clear(trained_run, real_meshes, tmp_path):
         assert message in " ".join(result.stderr.split()) and "Traceback" not in result.stderr
     told = run_predict(f"mesh={micrometres}", "units=micron", f"run={trained_run.mlflow_run_id}",
                        f"hydra.run.dir={tmp_path / 'y'}")
-    assert told.returncode == 0 and "read in micron" in told.stdout and "warning" not in told.stdout
+    assert told.returncode == 0 and "read in micron" in told.stdout and "warning: the part is" not in told.stdout
     # a unit the user states is trusted, but a size far from the training parts is flagged
     wrong = run_predict(f"mesh={mesh}", "units=m", f"run={trained_run.mlflow_run_id}",
                         f"hydra.run.dir={tmp_path / 'z'}")
@@ -98,6 +100,40 @@ def test_a_batch_of_meshes_predicts_what_each_mesh_alone_does(trained_run, real_
         for field in ("force", "theta", "force_band", "theta_band"):   # float32 sums of another batch size
             np.testing.assert_allclose(getattr(together, field), getattr(alone, field), rtol=1e-4, atol=1e-4)
     assert not np.allclose(batch[0].force, batch[1].force)      # three parts, three predictions
+
+
+def test_predict_tells_how_far_a_part_is_from_the_training_parts(trained_run, tiny_data, real_meshes, tmp_path):
+    """The card holds what the head read of each training part; a training part's own mesh is at 0 of the coverage
+    radius, and a real pin's distance to the tiny model's two D-subs is the brute-force one over their distance."""
+    from pipe.predict import predict_with, sample_mesh, write_predictions
+
+    card = trained_run.card
+    reference = np.array(card.reference_codes)
+    expected = np.stack([trained_run.latents[trained_run.index[name]].numpy() for name in card.train_parts])
+    assert card.train_parts == ("dsub9", "dsub15")
+    np.testing.assert_allclose(reference, expected, rtol=1e-6, atol=1e-7)
+    pin = next(p for p in real_meshes if p.name == "labit_positioning_pin_d5_20.stl")
+    meshes = [tiny_data / "parts" / "dsub9" / "mesh.stl", pin]
+    cfg = predict_config("[" + ",".join(str(m) for m in meshes) + "]")
+    own, new = predict_with(trained_run.model, card, cfg, meshes)
+    assert own.novelty.nearest == "dsub9" and own.novelty.ratio < 1e-5 and not own.novelty.extrapolates
+    cloud = sample_mesh(pin, cfg, card)[0]
+    code = trained_run.model.latent(torch.from_numpy(cloud.points[None]), torch.from_numpy(cloud.slices[None]))
+    distances = np.linalg.norm(reference - code.numpy(), axis=1)
+    radius = np.linalg.norm(reference[0] - reference[1])
+    assert new.novelty.nearest == card.train_parts[distances.argmin()]
+    assert new.novelty.ratio == pytest.approx(distances.min() / radius, rel=1e-5)
+    assert new.novelty.extrapolates
+    assert new.notes[-1].startswith(f"warning: nearest training part {new.novelty.nearest} at")
+
+    written = write_predictions([own, new], tmp_path, "runs:/x/model")
+    with open(tmp_path / "predictions.csv", newline="") as file:
+        rows = list(csv.DictReader(file))
+    assert [row["nearest_training_part"] for row in rows] == ["dsub9", new.novelty.nearest]
+    assert float(rows[1]["novelty_ratio"]) == pytest.approx(new.novelty.ratio, rel=1e-3)
+    assert "extrapolates" in rows[1]["notes"] and "extrapolates" not in rows[0]["notes"]
+    doc = json.loads(next(p for p in written if p.name == "theta.json" and pin.stem in str(p)).read_text())
+    assert doc["novelty"]["extrapolates"] is True and doc["novelty"]["ratio"] == pytest.approx(new.novelty.ratio)
 
 
 def test_mesh_files_reads_a_folder_a_list_or_a_file(tmp_path):

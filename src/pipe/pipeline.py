@@ -240,9 +240,11 @@ def build_model(cfg: DictConfig, data: PreparedDomain,
     return PIPEModel(*(components or build_components(cfg)), *data_scales(train), sections=sections, slices=slices)
 
 
-def model_card(cfg: DictConfig, data: PreparedDomain, dynamics: DynamicModel, band_offset: float) -> ModelCard:
-    """What predict.py needs besides the weights: preprocessing settings, the training parts' sizes and the
-    prediction band's settings with its offset calibrated on the validation parts."""
+def model_card(cfg: DictConfig, data: PreparedDomain, dynamics: DynamicModel, band_offset: float,
+               codes: dict[str, torch.Tensor]) -> ModelCard:
+    """What predict.py needs besides the weights: preprocessing settings, the training parts' sizes and codes
+    (`codes`: the head's input by part name, for `pipe.model.novelty`) and the prediction band's settings with
+    its offset calibrated on the validation parts."""
     train = data.splits["train"]
     extents = [float(np.ptp(p.cloud.points, axis=0).max()) for p in train]
     force_scale, depth_scale = data_scales(train)
@@ -251,7 +253,9 @@ def model_card(cfg: DictConfig, data: PreparedDomain, dynamics: DynamicModel, ba
                      rate_hz=float(cfg.data.rate_hz), parameter_names=tuple(dynamics.parameter_names),
                      train_parts=data.domain.train, train_size_mm=(min(extents), max(extents)),
                      depth_scale_mm=depth_scale, force_scale_n=force_scale,
-                     band=BandCard(band.level, band.samples, band.seed, band_offset))
+                     band=BandCard(band.level, band.samples, band.seed, band_offset),
+                     reference_codes=tuple(tuple(float(f"{x:.7g}") for x in codes[name].tolist())
+                                           for name in data.domain.train))
 
 
 def check_phase(cfg: DictConfig) -> str:
@@ -584,9 +588,10 @@ def evaluate_trained(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, tr
     reconstruction = reconstruction_metrics(model.encoder, test)
     seconds = {**trained.seconds, "evaluation": time.perf_counter() - start}
     band = next(iter(results["pipe"].bands.values()))
+    train_codes = {p.name: trained.latents[trained.index[p.name]] for p in train}
     run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, trained.latents,
                     trained.index, test, dt, results, reconstruction,
-                    model_card(cfg, data, model.dynamics, band.offset), seconds, logvars=trained.logvars,
+                    model_card(cfg, data, model.dynamics, band.offset, train_codes), seconds, logvars=trained.logvars,
                     objective=trained.objective, trained_dir=None if trained.folder == run_dir else trained.folder,
                     force_weight=trained.force_weight)
     write_text_atomically(run_dir / "metrics.json", json.dumps(

@@ -29,6 +29,7 @@ from pipe.data.spec import MESH_SUFFIXES  # noqa: E402
 from pipe.errors import PipeError  # noqa: E402
 from pipe.files import atomic_path, write_text_atomically  # noqa: E402
 from pipe.model.card import BandCard, ModelCard  # noqa: E402
+from pipe.model.novelty import Novelty, novelty  # noqa: E402
 from pipe.model.uncertainty import force_band, theta_band  # noqa: E402
 from pipe.store import tracking_uri  # noqa: E402
 
@@ -50,6 +51,7 @@ class Prediction:
     band: BandCard              # the band's level, latent draws and calibrated widening
     force_band: np.ndarray      # (2, T) N: the calibrated band's lower and upper force
     theta_band: np.ndarray      # (2, G, P): the latent band's lower and upper Theta at depth_grid
+    novelty: Novelty | None     # how far from the training parts, in the head's input; None: not measured
 
 
 def model_uri(run: str) -> str:
@@ -101,6 +103,24 @@ def check_size(extent: float, card: ModelCard, units: str, assumed: str, mesh: P
         raise PipeError(f"{message}; the unit was assumed from the size, so pass the mesh's real unit, e.g. "
                         f"units=mm or units=m", mesh)
     return [f"warning: {message}; predictions this far outside the training geometry are extrapolations"]
+
+
+def novelty_notes(codes: torch.Tensor, card: ModelCard) -> list[tuple[Novelty | None, list[str]]]:
+    """Each part's novelty against the training parts the card holds (`pipe.model.novelty`), with a note: a
+    warning where the part is farther from them than any training part is from its nearest other one."""
+    reference = torch.tensor(card.reference_codes, dtype=torch.float64)
+    if reference.numel() and reference.shape[1] != codes.shape[1]:
+        raise PipeError(f"the model card is broken: it holds codes of {reference.shape[1]} numbers for a model "
+                        f"whose head reads {codes.shape[1]}; retrain the model")
+    found = novelty(codes, reference, card.train_parts) if reference.numel() else None
+    if found is None:
+        return [(None, ["no novelty measure: the training parts do not span a coverage radius"])] * len(codes)
+    notes = []
+    for item in found:
+        where = f"nearest training part {item.nearest} at {item.ratio:.2f} of the training parts' coverage radius"
+        notes.append((item, [f"warning: {where}: farther out than any training part is from its nearest other "
+                             "one: the prediction extrapolates" if item.extrapolates else where]))
+    return notes
 
 
 def ramp_and_hold(depth: float, speed: float, rest: float, hold: float, rate: float) -> tuple[np.ndarray, ...]:
@@ -165,6 +185,7 @@ def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig, meshe
         target = cfg.ramp.depth_mm or card.depth_scale_mm
         time, depth = ramp_and_hold(target, cfg.ramp.speed_mm_s, cfg.ramp.rest_s, cfg.ramp.hold_s, rate)
     n = len(meshes)
+    novelties = novelty_notes(z, card)
     p = torch.as_tensor(depth, dtype=torch.float32)[None]
     forces = model(z, p.expand(n, -1), 1.0 / rate).numpy()
     depth_max = float(np.abs(depth).max())
@@ -173,13 +194,13 @@ def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig, meshe
     thetas = profile(grid.expand(n, -1)).numpy()
     settings = card.band.settings
     predictions = []
-    for i, (path, (_, notes)) in enumerate(zip(meshes, samples)):
+    for i, (path, (_, notes), (found, more)) in enumerate(zip(meshes, samples, novelties)):
         lower, upper = force_band(model, z[i], logvar[i], p, 1.0 / rate, settings)
         force_limits = np.stack([lower[0].numpy() - card.band.offset_n, upper[0].numpy() + card.band.offset_n])
         theta_limits = np.stack([t.numpy() for t in theta_band(model, z[i], logvar[i], depth_max, grid[0], settings)])
         predictions.append(Prediction(path, grid[0].numpy(), thetas[i], list(card.parameter_names), time, depth,
-                                      forces[i], local_models(profile, i), notes, card.band, force_limits,
-                                      theta_limits))
+                                      forces[i], local_models(profile, i), notes + more, card.band,
+                                      force_limits, theta_limits, found))
     return predictions
 
 
@@ -205,13 +226,15 @@ def write_predictions(predictions: list[Prediction], out: Path, run: str) -> lis
     if len(predictions) == 1:
         return write_prediction(predictions[0], out, run)
     written = []
-    rows = ["mesh,folder,peak_force_N,peak_lower_N,peak_upper_N,final_force_N,notes"]
+    rows = ["mesh,folder,peak_force_N,peak_lower_N,peak_upper_N,final_force_N,nearest_training_part,novelty_ratio,"
+            "notes"]
     for pred, name in zip(predictions, output_names([p.mesh for p in predictions])):
         written += write_prediction(pred, out / name, run)
         peak = int(pred.force.argmax())
         notes = "; ".join(pred.notes).replace('"', "'")
+        near, ratio = (pred.novelty.nearest, f"{pred.novelty.ratio:.4g}") if pred.novelty else ("", "")
         rows.append(f'"{pred.mesh}",{name},{pred.force[peak]:.6g},{pred.force_band[0, peak]:.6g},'
-                    f'{pred.force_band[1, peak]:.6g},{pred.force[-1]:.6g},"{notes}"')
+                    f'{pred.force_band[1, peak]:.6g},{pred.force[-1]:.6g},"{near}",{ratio},"{notes}"')
     write_text_atomically(out / "predictions.csv", "\n".join(rows) + "\n")
     return [*written, out / "predictions.csv"]
 
@@ -237,7 +260,13 @@ def write_prediction(pred: Prediction, out: Path, run: str) -> list[Path]:
                     "calibrated_offset_N": pred.band.offset_n,
                     "about": "force.csv F_z_lower/F_z_upper: the quantiles of the force over latent codes drawn from "
                              "the encoder's distribution, widened by the offset calibrated on the validation parts; "
-                             "theta.csv <name>_lower/_upper: the latent quantiles alone"}}
+                             "theta.csv <name>_lower/_upper: the latent quantiles alone"},
+           "novelty": None if pred.novelty is None else {
+               "nearest_training_part": pred.novelty.nearest, "distance": pred.novelty.distance,
+               "ratio": pred.novelty.ratio, "extrapolates": pred.novelty.extrapolates,
+               "about": "the distance from the part to its nearest training part in the head's input, over the "
+                        "largest distance from a training part to its nearest other one; above 1 the prediction "
+                        "extrapolates beyond the training parts"}}
     write_text_atomically(out / "theta.json", json.dumps(doc, indent=2) + "\n")
     fig, axes = plt.subplots(1, 1 + len(pred.parameter_names), figsize=(4 * (1 + len(pred.parameter_names)), 3.4))
     axes[0].fill_between(pred.time, *pred.force_band, color="k", alpha=0.15, lw=0,

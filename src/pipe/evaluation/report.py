@@ -16,6 +16,7 @@ import torch  # noqa: E402
 from pipe.evaluation.evaluate import MethodResult  # noqa: E402
 from pipe.evaluation.spread import Spread, verdict  # noqa: E402
 from pipe.files import atomic_path, write_text_atomically
+from pipe.model.novelty import novelty  # noqa: E402
 from pipe.model.uncertainty import BandSettings, theta_band  # noqa: E402
 
 COLUMNS = [("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("nrmse_fit_F", "NRMSE fit(F) [%]"),
@@ -24,9 +25,22 @@ COLUMNS = [("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("nrmse_fit_F"
 
 
 def results_document(domain: str, counts: dict[str, int], results: dict[str, MethodResult],
-                     reconstruction: dict[str, dict[str, float]], seconds: dict[str, float]) -> dict:
+                     reconstruction: dict[str, dict[str, float]], seconds: dict[str, float],
+                     novelties: dict[str, dict[str, float | str]] | None = None) -> dict:
     return {"domain": domain, "parts": counts, "seconds": seconds, "reconstruction": reconstruction,
-            "methods": {name: {"domain": r.domain, "per_part": r.per_part} for name, r in results.items()}}
+            "methods": {name: {"domain": r.domain, "per_part": r.per_part} for name, r in results.items()},
+            "novelty": novelties}
+
+
+def novelty_of_test_parts(run) -> dict[str, dict[str, float | str]] | None:
+    """Each test part's nearest training part and its distance over the training parts' coverage radius, in
+    what the head reads (`pipe.model.novelty`: above 1 PIPE extrapolates); None where not measured."""
+    if not run.card.reference_codes:
+        return None
+    codes = torch.stack([run.latents[run.index[part.name]] for part in run.test])
+    found = novelty(codes, torch.tensor(run.card.reference_codes), run.card.train_parts)
+    return None if found is None else {part.name: {"nearest_training_part": item.nearest, "ratio": item.ratio}
+                                       for part, item in zip(run.test, found)}
 
 
 def _cell(metrics: dict[str, float], key: str) -> str:
@@ -50,6 +64,10 @@ def results_markdown(doc: dict) -> str:
             lines.append(f"| {part} | {name} | " + " | ".join(_cell(m["per_part"][part], k) for k, _ in COLUMNS)
                          + " |")
     lines += _band_lines({k: f"{v:.2f}" for k, v in methods.get("pipe", {}).get("domain", {}).items()})
+    if doc.get("novelty"):
+        lines += ["", "| test part | nearest training part (head's input) | distance over the training parts' "
+                  "coverage radius (above 1: extrapolated) |", "| --- | --- | --- |"]
+        lines += [f"| {part} | {n['nearest_training_part']} | {n['ratio']:.2f} |" for part, n in doc["novelty"].items()]
     lines += ["", "| test part | reconstruction: mean nearest-neighbour distance [mm] | the same on clouds "
               "normalised to the unit sphere | Chamfer [mm^2] |", "| --- | --- | --- | --- |"]
     lines += [f"| {part} | {r['nn_distance_mm']:.3f} | {r['nn_distance_unit_sphere']:.4f} | {r['chamfer_mm2']:.1f} |"
@@ -263,7 +281,8 @@ def write_report(run, out: Path) -> list[Path]:
     """results.json, results.md, the four figures of a finished run and the data of two of them (forces.csv,
     losses.csv)."""
     out.mkdir(parents=True, exist_ok=True)
-    doc = results_document(run.domain_name, run.counts, run.results, run.reconstruction, run.seconds)
+    doc = results_document(run.domain_name, run.counts, run.results, run.reconstruction, run.seconds,
+                           novelty_of_test_parts(run))
     files = {"results.json": json.dumps(doc, indent=2) + "\n", "results.md": results_markdown(doc)}
     for name, text in files.items():
         write_text_atomically(out / name, text)

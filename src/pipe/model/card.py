@@ -13,7 +13,7 @@ from pipe import __version__
 from pipe.errors import PipeError
 from pipe.model.uncertainty import BandSettings
 
-CARD_VERSION = 2   # 2: the prediction band (`band`)
+CARD_VERSION = 3   # 2: the prediction band (`band`); 3: the training parts' codes (`reference_codes`)
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,7 @@ class ModelCard:
     depth_scale_mm: float                # typical insertion depth of the training trials
     force_scale_n: float                 # typical peak force of the training trials
     band: BandCard = field(default_factory=BandCard)
+    reference_codes: tuple[tuple[float, ...], ...] = ()   # the head's input of each training part (novelty)
     units: Units = field(default_factory=Units)
     pipe_version: str = __version__
     card_version: int = CARD_VERSION
@@ -60,7 +61,9 @@ class ModelCard:
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON/YAML types, as MLflow stores model metadata."""
         doc = asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in doc.items()}
+        doc = {k: list(v) if isinstance(v, tuple) else v for k, v in doc.items()}
+        doc["reference_codes"] = [list(row) for row in self.reference_codes]
+        return doc
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any] | None, source: str) -> ModelCard:
@@ -77,7 +80,7 @@ class ModelCard:
         if missing or unknown:
             raise PipeError(f"the model card at {source} is broken: missing {missing}, unknown {unknown}")
         try:
-            return cls(
+            card = cls(
                 domain=str(doc["domain"]), points=int(doc["points"]), cloud_seed=int(doc["cloud_seed"]),
                 rate_hz=float(doc["rate_hz"]), parameter_names=tuple(str(n) for n in doc["parameter_names"]),
                 train_parts=tuple(str(n) for n in doc["train_parts"]),
@@ -85,6 +88,12 @@ class ModelCard:
                 depth_scale_mm=float(doc["depth_scale_mm"]), force_scale_n=float(doc["force_scale_n"]),
                 band=BandCard(level=float(doc["band"]["level"]), samples=int(doc["band"]["samples"]),
                               seed=int(doc["band"]["seed"]), offset_n=float(doc["band"]["offset_n"])),
+                reference_codes=tuple(tuple(float(x) for x in row) for row in doc["reference_codes"]),
                 units=Units(**doc["units"]), pipe_version=str(doc["pipe_version"]), card_version=int(version))
         except (TypeError, ValueError, IndexError, KeyError) as exc:
             raise PipeError(f"the model card at {source} is broken ({type(exc).__name__}: {exc})") from None
+        codes = card.reference_codes
+        if codes and (len(codes) != len(card.train_parts) or len({len(row) for row in codes}) != 1):
+            raise PipeError(f"the model card at {source} is broken: reference_codes holds {len(codes)} rows of sizes "
+                            f"{sorted({len(row) for row in codes})} for {len(card.train_parts)} training parts")
+        return card
