@@ -22,6 +22,8 @@ import torch
 
 @dataclass(frozen=True)
 class Novelty:
+    """One part's place among the training parts."""
+
     nearest: str        # the training part nearest to the part, in the head's input
     distance: float     # Euclidean distance to it, in the head's input
     ratio: float        # distance over the training parts' coverage radius
