@@ -37,16 +37,14 @@ from stage2_variants import parse_variant
 from summarise import domain_of, read_rows
 
 from pipe.data.batches import stack_geometry
-from pipe.model.novelty import novelty
+from pipe.model.novelty import nearest_other_distances, novelty
 from pipe.pipeline import build_model
 
 
 def distance_ratio(codes: torch.Tensor) -> torch.Tensor:
     """(parts,) each row's Euclidean distance to its nearest other row of `codes` (parts, size), over the median
     of those distances."""
-    distances = torch.cdist(codes.double(), codes.double())
-    distances.fill_diagonal_(torch.inf)
-    nearest = distances.min(1).values
+    nearest = nearest_other_distances(codes)
     return nearest / nearest.quantile(0.5)        # torch's median() is the lower middle value of an even count
 
 

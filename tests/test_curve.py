@@ -99,6 +99,8 @@ def test_the_curve_gives_pipe_minus_nearest_seed_by_seed(tmp_path):
     document = json.loads((tmp_path / "out" / "learning_curve.json").read_text())
     assert document["pins"]["pipe_minus_nearest"] == {"5": {"mean": 2.0, "std": 1.0, "n": 3}}
     assert document["pins"]["fit_F"]["pipe"]["10"] == {"mean": 60.0, "std": 1.0, "n": 3}
+    assert document["pins"]["fit_F_per_seed"] == {"pipe": {"5": {"0": 51.0, "1": 61.0, "2": 71.0}},
+                                                  "nearest": {"5": {"0": 50.0, "1": 59.0, "2": 68.0}}}
 
 
 def test_the_curve_refuses_what_is_not_a_sweep_of_seeds_runs(tmp_path):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import mlflow
 import mlflow.pytorch
 import pytest
@@ -21,6 +23,7 @@ def test_a_card_survives_the_round_trip_through_plain_types():
     assert doc["card_version"] == CARD_VERSION and doc["parameter_names"] == ["a0", "a1", "a2", "b0"]
     assert ModelCard.from_dict(doc, "here") == CARD
     assert doc["reference_codes"] == [[0.5, -1.25, 2.0], [0.0, 3.5, -0.75]]
+    assert json.loads(json.dumps(doc)) == doc           # plain lists all the way down: a tuple would differ
 
 
 @pytest.mark.parametrize("change, message", [

@@ -7,11 +7,16 @@ import json
 import pytest
 import torch
 
-from pipe.model.novelty import Novelty, coverage_radius, novelty
+from pipe.model.novelty import Novelty, coverage_radius, nearest_other_distances, novelty
 
 # training parts on a line at 0, 1 and 3: nearest-other distances 1, 1 and 2, so the coverage radius is 2
 REFERENCE = torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0]])
 NAMES = ("a", "b", "c")
+
+
+def test_nearest_other_distances_by_hand():
+    assert nearest_other_distances(REFERENCE).tolist() == pytest.approx([1.0, 1.0, 2.0])
+    assert nearest_other_distances(torch.tensor([[0.0, 0.0], [3.0, 4.0]])).dtype == torch.float64
 
 
 def test_the_coverage_radius_is_the_largest_nearest_other_distance():

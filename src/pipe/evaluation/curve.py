@@ -5,7 +5,8 @@ whose results.json holds every method's metrics as mean ± std over the seeds. O
 sweep folder of its runs) gives one panel of the figure and one block of the table; `pipe report curve`
 writes learning_curve.json, learning_curve.md and learning_curve.png. Beside each method's spread the table
 gives PIPE's FIT(F) minus `nearest`'s seed by seed: the two share each seed's trained encoder and head, so
-their difference is free of what the seed does to both.
+their difference is free of what the seed does to both. The JSON keeps each seed's FIT(F) too, so that a run
+trained again can be compared with the curve seed by seed.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from pipe.files import atomic_path, write_text_atomically
 
 Curve = dict[str, dict[str, dict[int, Spread]]]     # family -> method -> training parts -> FIT(F) over seeds
 Paired = dict[str, dict[int, Spread]]               # family -> training parts -> PIPE minus nearest, per seed
+PerSeed = dict[str, dict[str, dict[int, dict[str, float]]]]   # family -> method -> training parts -> seed -> FIT(F)
 METRIC = "fit_F"
 PAIRED_WITH = "nearest"
 FLOOR = -25.0                   # [%] the figure's lowest FIT(F); lower points are left to the table
@@ -77,6 +79,18 @@ def read_paired(folders: list[Path], metric: str = METRIC) -> Paired:
         if len(differences) >= 2:
             paired.setdefault(family, {})[count] = spread(differences)
     return paired
+
+
+def read_per_seed(folders: list[Path], metric: str = METRIC) -> PerSeed:
+    """Each seed's metric per family, method and number of training parts, as the runs' results.json hold it:
+    what lets a run trained again be compared with the curve seed by seed."""
+    found: PerSeed = {}
+    for family, count, doc, _ in _runs(folders):
+        for seed, run in doc.get("per_seed", {}).items():
+            for method, metrics in run.items():
+                if metric in metrics:
+                    found.setdefault(family, {}).setdefault(method, {}).setdefault(count, {})[seed] = metrics[metric]
+    return found
 
 
 def gap_closed(points: dict[str, dict[int, Spread]], count: int) -> float | None:
@@ -150,15 +164,17 @@ def plot_curve(curve: Curve, path: Path) -> None:
 
 
 def write_curve(folders: list[Path], out: Path) -> list[Path]:
-    """learning_curve.json (per family: each method's FIT(F) and PIPE minus `nearest` seed by seed, by number
-    of training parts), .md and .png in `out` from the sweep folders."""
-    curve, paired = read_curve(folders), read_paired(folders)
+    """learning_curve.json (per family: each method's FIT(F), PIPE minus `nearest` seed by seed and each seed's
+    FIT(F), by number of training parts), .md and .png in `out` from the sweep folders."""
+    curve, paired, per_seed = read_curve(folders), read_paired(folders), read_per_seed(folders)
     out.mkdir(parents=True, exist_ok=True)
     by_count = lambda values: {str(n): {"mean": v.mean, "std": v.std, "n": v.n}   # noqa: E731
                                for n, v in sorted(values.items())}
     write_text_atomically(out / "learning_curve.json", json.dumps(
         {family: {"fit_F": {method: by_count(values) for method, values in points.items()},
-                  f"pipe_minus_{PAIRED_WITH}": by_count(paired.get(family, {}))}
+                  f"pipe_minus_{PAIRED_WITH}": by_count(paired.get(family, {})),
+                  "fit_F_per_seed": {method: {str(n): seeds for n, seeds in sorted(values.items())}
+                                     for method, values in per_seed.get(family, {}).items()}}
          for family, points in curve.items()}, indent=2) + "\n")
     write_text_atomically(out / "learning_curve.md", curve_markdown(curve, paired))
     plot_curve(curve, out / "learning_curve.png")

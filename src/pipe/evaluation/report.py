@@ -26,7 +26,7 @@ COLUMNS = [("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("nrmse_fit_F"
 
 def results_document(domain: str, counts: dict[str, int], results: dict[str, MethodResult],
                      reconstruction: dict[str, dict[str, float]], seconds: dict[str, float],
-                     novelties: dict[str, dict[str, float | str]] | None = None) -> dict:
+                     novelties: dict[str, dict[str, float | str]] | None) -> dict:
     return {"domain": domain, "parts": counts, "seconds": seconds, "reconstruction": reconstruction,
             "methods": {name: {"domain": r.domain, "per_part": r.per_part} for name, r in results.items()},
             "novelty": novelties}

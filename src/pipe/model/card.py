@@ -6,6 +6,7 @@ added or removed; a card of another version is refused with a message saying wha
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
@@ -60,10 +61,7 @@ class ModelCard:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON/YAML types, as MLflow stores model metadata."""
-        doc = asdict(self)
-        doc = {k: list(v) if isinstance(v, tuple) else v for k, v in doc.items()}
-        doc["reference_codes"] = [list(row) for row in self.reference_codes]
-        return doc
+        return json.loads(json.dumps(asdict(self)))          # tuples, nested ones too, become lists
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any] | None, source: str) -> ModelCard:

@@ -34,14 +34,20 @@ class Novelty:
         return self.ratio > 1.0
 
 
+def nearest_other_distances(reference: torch.Tensor) -> torch.Tensor:
+    """(parts,) each row's Euclidean distance to its nearest other row of `reference` (parts, size), in float64;
+    needs at least two rows."""
+    distances = torch.cdist(reference.double(), reference.double())
+    distances.fill_diagonal_(torch.inf)
+    return distances.min(1).values
+
+
 def coverage_radius(reference: torch.Tensor) -> float | None:
     """The largest distance from a row of `reference` (parts, size) to its nearest other row; None where it
     is undefined: fewer than two parts, or all of them at one point."""
     if len(reference) < 2:
         return None
-    distances = torch.cdist(reference.double(), reference.double())
-    distances.fill_diagonal_(torch.inf)
-    radius = float(distances.min(1).values.max())
+    radius = float(nearest_other_distances(reference).max())
     return radius if radius > 0.0 else None
 
 
