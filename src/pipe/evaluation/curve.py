@@ -72,12 +72,19 @@ def read_curve(folders: list[Path], metric: str = METRIC) -> Curve:
 def read_paired(folders: list[Path], metric: str = METRIC) -> Paired:
     """PIPE's metric minus PAIRED_WITH's in each seed's run, as a spread over the seeds, per family and number
     of training parts (where at least two seeds have both)."""
+    return paired_differences(read_per_seed(folders, metric))
+
+
+def paired_differences(per_seed: PerSeed) -> Paired:
+    """PIPE minus PAIRED_WITH seed by seed, as a spread over the seeds that have both (at least two)."""
     paired: Paired = {}
-    for family, count, doc, _ in _runs(folders):
-        differences = [run["pipe"][metric] - run[PAIRED_WITH][metric] for run in doc.get("per_seed", {}).values()
-                       if metric in run.get("pipe", {}) and metric in run.get(PAIRED_WITH, {})]
-        if len(differences) >= 2:
-            paired.setdefault(family, {})[count] = spread(differences)
+    for family, methods in per_seed.items():
+        others = methods.get(PAIRED_WITH, {})
+        for count, pipe in methods.get("pipe", {}).items():
+            differences = [value - others[count][seed] for seed, value in pipe.items()
+                           if seed in others.get(count, {})]
+            if len(differences) >= 2:
+                paired.setdefault(family, {})[count] = spread(differences)
     return paired
 
 
@@ -166,7 +173,8 @@ def plot_curve(curve: Curve, path: Path) -> None:
 def write_curve(folders: list[Path], out: Path) -> list[Path]:
     """learning_curve.json (per family: each method's FIT(F), PIPE minus `nearest` seed by seed and each seed's
     FIT(F), by number of training parts), .md and .png in `out` from the sweep folders."""
-    curve, paired, per_seed = read_curve(folders), read_paired(folders), read_per_seed(folders)
+    curve, per_seed = read_curve(folders), read_per_seed(folders)
+    paired = paired_differences(per_seed)
     out.mkdir(parents=True, exist_ok=True)
     by_count = lambda values: {str(n): {"mean": v.mean, "std": v.std, "n": v.n}   # noqa: E731
                                for n, v in sorted(values.items())}
