@@ -14,7 +14,8 @@ from conftest import ROOT, compose_config
 from pipe.cli import main as pipe_main
 from pipe.data.domain import numbered_split
 from pipe.errors import PipeError
-from pipe.evaluation.curve import curve_markdown, gap_closed, read_curve, read_paired, write_curve
+from pipe.evaluation.curve import (curve_markdown, gap_closed, read_curve, read_force_choices, read_paired,
+                                  write_curve)
 from pipe.evaluation.spread import Spread
 from pipe.synthetic.families import family_parts
 
@@ -49,9 +50,9 @@ def test_the_curve_domain_without_a_family_dataset_is_refused_with_a_hint():
 
 
 def write_run(folder, train: int, fits: dict[str, tuple[float, float]],
-              per_seed: dict[str, list[float]] | None = None) -> None:
+              per_seed: dict[str, list[float]] | None = None, force_weight: dict | None = None) -> None:
     """A seeds run's results.json as pipeline.write_seeds_results writes it, with FIT(F) per method (and,
-    where given, each seed's FIT(F) per method)."""
+    where given, each seed's FIT(F) per method and each seed's choice of stage 1's force weight)."""
     folder.mkdir(parents=True)
     methods = {m: {"fit_F": {"mean": mean, "std": std, "n": 3}, "rms": {"mean": 1.0, "std": 0.1, "n": 3}}
                for m, (mean, std) in fits.items()}
@@ -59,7 +60,8 @@ def write_run(folder, train: int, fits: dict[str, tuple[float, float]],
              for k in range(3)} if per_seed else {}
     (folder / "results.json").write_text(json.dumps({"domain": f"curve_pins_{train}", "seeds": [0, 1, 2],
                                                      "parts": {"train": train, "val": 10, "test": 20},
-                                                     "methods": methods, "per_seed": seeds}))
+                                                     "methods": methods, "per_seed": seeds,
+                                                     **({"force_weight": force_weight} if force_weight else {})}))
 
 
 def test_the_curve_table_holds_each_runs_spread_and_the_gap_pipe_closes(tmp_path):
@@ -101,6 +103,23 @@ def test_the_curve_gives_pipe_minus_nearest_seed_by_seed(tmp_path):
     assert document["pins"]["fit_F"]["pipe"]["10"] == {"mean": 60.0, "std": 1.0, "n": 3}
     assert document["pins"]["fit_F_per_seed"] == {"pipe": {"5": {"0": 51.0, "1": 61.0, "2": 71.0}},
                                                   "nearest": {"5": {"0": 50.0, "1": 59.0, "2": 68.0}}}
+
+
+def test_the_curve_shows_which_force_weight_each_seed_kept(tmp_path):
+    """The seeds' choices of stage 1's force weight, in the seeds' order (10 after 2, not after 1), and every
+    candidate's validation loss in the JSON; a run trained with one weight has no row entry."""
+    sweep = tmp_path / "rect"
+    choice = {str(seed): {"chosen": weight, "objectives": {"0": 0.2, "1000": 0.21 if weight == 0 else 0.19}}
+              for seed, weight in ((10, 1000.0), (2, 0.0), (1, 1000.0))}
+    write_run(sweep / "train_100", 100, {"pipe": (75.0, 2.0)}, force_weight=choice)
+    write_run(sweep / "train_5", 5, {"pipe": (60.0, 2.0)})
+    assert read_force_choices([sweep]) == {"rect": {100: choice}}
+    write_curve([sweep], tmp_path / "out")
+    table = (tmp_path / "out" / "learning_curve.md").read_text()
+    assert "| force weight kept, seed by seed | - | 1000, 0, 1000 | - |" in table
+    document = json.loads((tmp_path / "out" / "learning_curve.json").read_text())
+    assert document["rect"]["force_weight_per_seed"] == {"100": choice}
+    assert "force weight kept" not in curve_markdown(read_curve([sweep]))    # no choices given: no row
 
 
 def test_the_curve_refuses_what_is_not_a_sweep_of_seeds_runs(tmp_path):

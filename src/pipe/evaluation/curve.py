@@ -6,13 +6,14 @@ sweep folder of its runs) gives one panel of the figure and one block of the tab
 writes learning_curve.json, learning_curve.md and learning_curve.png. Beside each method's spread the table
 gives PIPE's FIT(F) minus `nearest`'s seed by seed: the two share each seed's trained encoder and head, so
 their difference is free of what the seed does to both. The JSON keeps each seed's FIT(F) too, so that a run
-trained again can be compared with the curve seed by seed.
+trained again can be compared with the curve seed by seed, and which of stage 1's force weights each seed's
+validation parts kept, with every candidate's validation loss (a row of the table), so that a reader sees
+where the curve turns on that choice.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from pathlib import Path
 
 import matplotlib
@@ -28,14 +29,17 @@ from pipe.files import atomic_path, write_text_atomically
 Curve = dict[str, dict[str, dict[int, Spread]]]     # family -> method -> training parts -> FIT(F) over seeds
 Paired = dict[str, dict[int, Spread]]               # family -> training parts -> PIPE minus nearest, per seed
 PerSeed = dict[str, dict[str, dict[int, dict[str, float]]]]   # family -> method -> training parts -> seed -> FIT(F)
+Choices = dict[str, dict[int, dict[str, dict]]]    # family -> training parts -> seed -> {chosen, objectives}
+Run = tuple[str, int, dict]                        # family, training parts, the run's results.json
 METRIC = "fit_F"
 PAIRED_WITH = "nearest"
 FLOOR = -25.0                   # [%] the figure's lowest FIT(F); lower points are left to the table
 
 
-def _runs(folders: list[Path]) -> Iterator[tuple[str, int, dict, Path]]:
-    """(family, training parts, results.json, its path) of every run in the sweep folders, a family per folder;
-    refuses what is not a sweep of `seeds=` runs, or two runs of one family with as many training parts."""
+def _runs(folders: list[Path]) -> list[Run]:
+    """(family, training parts, results.json) of every run in the sweep folders, a family per folder; refuses
+    what is not a sweep of `seeds=` runs, or two runs of one family with as many training parts."""
+    runs = []
     for folder in folders:
         documents = sorted(Path(folder).glob("*/results.json"))
         if not documents:
@@ -53,14 +57,19 @@ def _runs(folders: list[Path]) -> Iterator[tuple[str, int, dict, Path]]:
             if count in counts:
                 raise PipeError(f"two runs of the sweep have {count} training parts", document)
             counts.add(count)
-            yield Path(folder).name, count, doc, document
+            runs.append((Path(folder).name, count, doc))
+    return runs
 
 
 def read_curve(folders: list[Path], metric: str = METRIC) -> Curve:
     """The curve of each sweep folder (named by the folder): its runs' results.json, found in the folder's
     subfolders, by their number of training parts."""
+    return _curve(_runs(folders), metric)
+
+
+def _curve(runs: list[Run], metric: str) -> Curve:
     curve: Curve = {}
-    for family, count, doc, _ in _runs(folders):
+    for family, count, doc in runs:
         for method, metrics in doc["methods"].items():
             if metric in metrics:
                 value = metrics[metric]
@@ -91,13 +100,31 @@ def paired_differences(per_seed: PerSeed) -> Paired:
 def read_per_seed(folders: list[Path], metric: str = METRIC) -> PerSeed:
     """Each seed's metric per family, method and number of training parts, as the runs' results.json hold it:
     what lets a run trained again be compared with the curve seed by seed."""
+    return _per_seed(_runs(folders), metric)
+
+
+def _per_seed(runs: list[Run], metric: str) -> PerSeed:
     found: PerSeed = {}
-    for family, count, doc, _ in _runs(folders):
+    for family, count, doc in runs:
         for seed, run in doc.get("per_seed", {}).items():
             for method, metrics in run.items():
                 if metric in metrics:
                     found.setdefault(family, {}).setdefault(method, {}).setdefault(count, {})[seed] = metrics[metric]
     return found
+
+
+def read_force_choices(folders: list[Path]) -> Choices:
+    """Which stage-1 force weight each seed's validation parts kept, and every candidate's validation loss, per
+    family and number of training parts (runs trained with one weight have none)."""
+    return _force_choices(_runs(folders))
+
+
+def _force_choices(runs: list[Run]) -> Choices:
+    choices: Choices = {}
+    for family, count, doc in runs:
+        if doc.get("force_weight"):
+            choices.setdefault(family, {})[count] = doc["force_weight"]
+    return choices
 
 
 def gap_closed(points: dict[str, dict[int, Spread]], count: int) -> float | None:
@@ -109,10 +136,15 @@ def gap_closed(points: dict[str, dict[int, Spread]], count: int) -> float | None
     return (pipe - nearest) / (oracle - nearest) if oracle != nearest else None
 
 
-def curve_markdown(curve: Curve, paired: Paired | None = None) -> str:
+def kept_weights(choice: dict[str, dict]) -> str:
+    """The force weight each seed kept, in the seeds' order: e.g. "0, 1000, 1000"."""
+    return ", ".join(f"{choice[seed]['chosen']:g}" for seed in sorted(choice, key=int))
+
+
+def curve_markdown(curve: Curve, paired: Paired | None = None, choices: Choices | None = None) -> str:
     """One table per family: each method's FIT(F) mean ± std per number of training parts, PIPE's verdict
-    against it at the largest number, PIPE minus `nearest` seed by seed (`paired`), and the share of the
-    nearest-to-oracle gap PIPE closes at the largest number."""
+    against it at the largest number, PIPE minus `nearest` seed by seed (`paired`), the force weight each
+    seed kept (`choices`), and the share of the nearest-to-oracle gap PIPE closes at the largest number."""
     lines = []
     for family, points in curve.items():
         counts = sorted({n for values in points.values() for n in values})
@@ -130,10 +162,17 @@ def curve_markdown(curve: Curve, paired: Paired | None = None) -> str:
             lines.append(f"| pipe - {PAIRED_WITH}, seed by seed | "
                          + " | ".join(f"{differences[n].mean:+.2f} ± {differences[n].std:.2f}" if n in differences
                                       else "-" for n in counts) + " | - |")
+        kept = (choices or {}).get(family, {})
+        if kept:
+            lines.append("| force weight kept, seed by seed | "
+                         + " | ".join(kept_weights(kept[n]) if n in kept else "-" for n in counts) + " | - |")
         closed = gap_closed(points, largest)
         if differences:
             lines += ["", f"pipe - {PAIRED_WITH}, seed by seed: PIPE's FIT(F) minus `{PAIRED_WITH}`'s in each seed's "
                           "run (both predict with that seed's encoder and head), mean ± std over the seeds."]
+        if kept:
+            lines += ["", "force weight kept: stage 1's force weight whose stage 2 reached the lower validation loss "
+                          "in each seed's run (learning_curve.json holds every candidate's loss)."]
         if closed is not None:
             lines += ["", f"At {largest} training parts PIPE closes {closed:.1%} of the gap between `nearest` and "
                           "the oracle (of their means)."]
@@ -171,9 +210,11 @@ def plot_curve(curve: Curve, path: Path) -> None:
 
 
 def write_curve(folders: list[Path], out: Path) -> list[Path]:
-    """learning_curve.json (per family: each method's FIT(F), PIPE minus `nearest` seed by seed and each seed's
-    FIT(F), by number of training parts), .md and .png in `out` from the sweep folders."""
-    curve, per_seed = read_curve(folders), read_per_seed(folders)
+    """learning_curve.json (per family: each method's FIT(F), PIPE minus `nearest` seed by seed, each seed's
+    FIT(F) and each seed's force-weight choice, by number of training parts), .md and .png in `out` from the
+    sweep folders."""
+    runs = _runs(folders)
+    curve, per_seed, choices = _curve(runs, METRIC), _per_seed(runs, METRIC), _force_choices(runs)
     paired = paired_differences(per_seed)
     out.mkdir(parents=True, exist_ok=True)
     by_count = lambda values: {str(n): {"mean": v.mean, "std": v.std, "n": v.n}   # noqa: E731
@@ -182,8 +223,9 @@ def write_curve(folders: list[Path], out: Path) -> list[Path]:
         {family: {"fit_F": {method: by_count(values) for method, values in points.items()},
                   f"pipe_minus_{PAIRED_WITH}": by_count(paired.get(family, {})),
                   "fit_F_per_seed": {method: {str(n): seeds for n, seeds in sorted(values.items())}
-                                     for method, values in per_seed.get(family, {}).items()}}
+                                     for method, values in per_seed.get(family, {}).items()},
+                  "force_weight_per_seed": {str(n): choice for n, choice in sorted(choices.get(family, {}).items())}}
          for family, points in curve.items()}, indent=2) + "\n")
-    write_text_atomically(out / "learning_curve.md", curve_markdown(curve, paired))
+    write_text_atomically(out / "learning_curve.md", curve_markdown(curve, paired, choices))
     plot_curve(curve, out / "learning_curve.png")
     return [out / f"learning_curve.{ext}" for ext in ("json", "md", "png")]
