@@ -2,13 +2,17 @@
 0 and 1000, both trained by every run of the defaults) predict better than the candidate the run keeps? For
 finished seed folders, each candidate's PIPE is rebuilt from its checkpoints and scored on the validation and
 the test parts, and so is the mean of the two candidates' forces. One JSON line per run: FIT(F) per split of
-`chosen` (the run's own PIPE, to the digit), of each candidate and of `ensemble`. Results: docs/experiments.md.
+`chosen` (the run's own PIPE, to the digit), of each candidate and of `ensemble`, and each candidate's FIT(F)
+per validation part (`val_per_part`: how far apart the parts that choose put the candidates). Results:
+docs/experiments.md.
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/candidate_ensemble.py OUT.jsonl runs/pins/seed_0 ...
+  python experiments/candidate_ensemble.py OUT.jsonl --summary      # each row's validation margin
 """
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -34,11 +38,15 @@ def candidate_forces(candidate: Path) -> tuple[dict, dict[str, list[np.ndarray]]
     return data.splits, forces, ctx.dt
 
 
+def part_fits(parts: list, forces: dict[str, list[np.ndarray]], dt: float) -> dict[str, float]:
+    """Each part's FIT(F) as the evaluation reports it: per trial, averaged over the part's trials."""
+    return {part.name: float(np.mean([force_metrics(p.force, f, dt)["fit_F"]
+                                      for p, f in zip(part.profiles, forces[part.name])])) for part in parts}
+
+
 def fit(parts: list, forces: dict[str, list[np.ndarray]], dt: float) -> float:
     """FIT(F) as the evaluation reports it: per trial, averaged per part, then over the parts."""
-    per_part = [np.mean([force_metrics(p.force, f, dt)["fit_F"] for p, f in zip(part.profiles, forces[part.name])])
-                for part in parts]
-    return float(np.mean(per_part))
+    return float(np.mean(list(part_fits(parts, forces, dt).values())))
 
 
 def scores(run: Path) -> dict:
@@ -53,14 +61,43 @@ def scores(run: Path) -> dict:
     for split in ("val", "test"):
         row[split] = {c.name: fit(splits[split], predicted[c.name], dt) for c in candidates}
         row[split] |= {"chosen": row[split][chosen], "ensemble": fit(splits[split], mean, dt)}
+    row["val_per_part"] = {c.name: part_fits(splits["val"], predicted[c.name], dt) for c in candidates}
     return row
+
+
+def by_weight(row: dict) -> list[str]:
+    """The row's candidates (folder names force_weight_<w>), lightest weight first."""
+    return sorted(row["val_per_part"], key=lambda name: float(name.removeprefix("force_weight_")))
+
+
+def validation_margin(row: dict) -> tuple[float, float, int]:
+    """The heavier candidate's validation FIT(F) minus the lighter's (weight 1000 minus 0), part by part: their
+    mean, its standard error over the validation parts, and the number of parts."""
+    lighter, heavier = (row["val_per_part"][name] for name in by_weight(row))
+    differences = np.array([heavier[part] - lighter[part] for part in lighter])
+    return float(differences.mean()), float(differences.std(ddof=1) / np.sqrt(len(differences))), len(differences)
+
+
+def summary(rows_file: str) -> None:
+    """Per run: the weight kept, the candidates' validation margin part by part, and their test FIT(F)."""
+    for line in Path(rows_file).read_text().splitlines():
+        row = json.loads(line)
+        if "val_per_part" not in row:     # a row written before the per-part figures
+            continue
+        mean, error, parts = validation_margin(row)
+        test = " / ".join(f"{row['test'][name]:.2f}" for name in by_weight(row))
+        print(f"{row['run']}: kept {row['chosen_weight']:g}; validation FIT(F), heavier weight minus lighter, "
+              f"{mean:+.2f} ± {error:.2f} (standard error over {parts} parts); test FIT(F), lighter / heavier, {test}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("out", help="JSON lines file to append to")
-    ap.add_argument("runs", nargs="+", help="finished seed folders of train.py with two force-weight candidates")
+    ap.add_argument("out", help="JSON lines file to append to (with --summary: to read)")
+    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py with two force-weight candidates")
+    ap.add_argument("--summary", action="store_true", help="print each row's validation margin and test figures")
     args = ap.parse_args()
+    if args.summary:
+        summary(args.out)
     for run in args.runs:
         append_row(args.out, scores(Path(run)))
 

@@ -480,6 +480,23 @@ def test_candidate_ensemble_reproduces_the_kept_candidate_and_the_mean_force_fit
         alone = [row[split]["force_weight_0"], row[split]["force_weight_100"]]
         assert row[split]["chosen"] == row[split][f"force_weight_{row['chosen_weight']:g}"]
         assert row[split]["ensemble"] >= statistics.mean(alone) - 1e-9 * max(1.0, abs(statistics.mean(alone)))
+    for name in ("force_weight_0", "force_weight_100"):     # the parts' figures give the split's
+        assert statistics.mean(row["val_per_part"][name].values()) == pytest.approx(row["val"][name], abs=1e-9)
+    assert "validation FIT(F), heavier weight minus lighter" in run_script("candidate_ensemble.py", str(rows_file),
+                                                                           "--summary")
+
+
+def test_candidate_ensemble_summary_gives_the_validation_margin_part_by_part(tmp_path):
+    """Hand-computed: differences 2, 4 and 6 (weight 1000 minus 0, whatever the order the row lists them in)
+    have mean 4 and standard error 2 / sqrt(3) = 1.15; a row written before the per-part figures is skipped."""
+    row = {"run": "r/seed_0", "chosen_weight": 1000.0,
+           "val": {}, "test": {"force_weight_1000": 77.5, "force_weight_0": 72.25},
+           "val_per_part": {"force_weight_1000": {"a": 72.0, "b": 74.0, "c": 76.0},
+                            "force_weight_0": {"a": 70.0, "b": 70.0, "c": 70.0}}}
+    printed = printed_table("candidate_ensemble.py", [{"run": "old"}, row], tmp_path, "--summary")
+    assert printed.splitlines() == ["r/seed_0: kept 1000; validation FIT(F), heavier weight minus lighter, +4.00 ± "
+                                    "1.15 (standard error over 3 parts); test FIT(F), lighter / heavier, 72.25 / "
+                                    "77.50"]
 
 
 @pytest.mark.slow
