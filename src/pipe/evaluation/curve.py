@@ -6,8 +6,8 @@ sweep folder of its runs) gives one panel of the figure and one block of the tab
 writes learning_curve.json, learning_curve.md and learning_curve.png. Beside each method's spread the table
 gives PIPE's FIT(F) minus `nearest`'s seed by seed: the two share each seed's trained encoder and head, so
 their difference is free of what the seed does to both. The JSON keeps each seed's FIT(F) too, so that a run
-trained again can be compared with the curve seed by seed, and which of stage 1's force weights each seed's
-validation parts kept, with every candidate's validation loss (a row of the table), so that a reader sees
+trained again can be compared with the curve seed by seed, and each seed's choice of stage 1's force weight
+with every candidate's validation loss; the table shows the weight each seed kept, so that a reader sees
 where the curve turns on that choice.
 """
 
@@ -171,7 +171,7 @@ def curve_markdown(curve: Curve, paired: Paired | None = None, choices: Choices 
             lines += ["", f"pipe - {PAIRED_WITH}, seed by seed: PIPE's FIT(F) minus `{PAIRED_WITH}`'s in each seed's "
                           "run (both predict with that seed's encoder and head), mean ± std over the seeds."]
         if kept:
-            lines += ["", "force weight kept: stage 1's force weight whose stage 2 reached the lower validation loss "
+            lines += ["", "force weight kept: stage 1's force weight whose stage 2 reached the lowest validation loss "
                           "in each seed's run (learning_curve.json holds every candidate's loss)."]
         if closed is not None:
             lines += ["", f"At {largest} training parts PIPE closes {closed:.1%} of the gap between `nearest` and "
