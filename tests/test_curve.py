@@ -14,8 +14,7 @@ from conftest import ROOT, compose_config
 from pipe.cli import main as pipe_main
 from pipe.data.domain import numbered_split
 from pipe.errors import PipeError
-from pipe.evaluation.curve import (curve_markdown, gap_closed, read_curve, read_force_choices, read_paired,
-                                  write_curve)
+from pipe.evaluation.curve import curve_markdown, gap_closed, read_curve, read_force_choices, read_paired, write_curve
 from pipe.evaluation.spread import Spread
 from pipe.synthetic.families import family_parts
 
