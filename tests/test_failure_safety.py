@@ -50,7 +50,8 @@ def test_a_diverging_training_stops_with_a_message_and_a_failed_run(tiny_data, t
 @pytest.mark.slow
 def test_a_killed_training_resumes_into_the_same_run_and_loss_log(tiny_data, tmp_path):
     """SIGTERM in the middle of stage 1 (after its third epoch's checkpoint), then resume=: one MLflow run, KILLED
-    and then FINISHED, and one loss log holding the epochs from before and after the kill."""
+    and then FINISHED, one loss log holding the epochs from before and after the kill, and both stages' weights
+    those of the same run uninterrupted."""
     run_dir = tmp_path / "run"
     args = [f"data.dir={tiny_data}", f"hydra.run.dir={run_dir}", "stages.vae.epochs=60", "trainer.checkpoint_every=1"]
     process = subprocess.Popen(train(*args), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -79,6 +80,16 @@ def test_a_killed_training_resumes_into_the_same_run_and_loss_log(tiny_data, tmp
     assert after[:len(before)] == before and max(epochs) == 59 and set(range(60)) <= set(epochs)
     history = MlflowClient().get_metric_history(run_id, "vae/train_loss")
     assert {m.step for m in history} >= {int(row["step"]) for row in after}
+
+    # and it trained what the same run uninterrupted trains (the random streams resumed: RandomState)
+    uninterrupted = tmp_path / "uninterrupted"
+    result = subprocess.run(train(args[0], f"hydra.run.dir={uninterrupted}", *args[2:]), capture_output=True,
+                            text=True, timeout=900, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-3000:]
+    for stage in ("vae", "head"):
+        weights = [torch.load(folder / f"checkpoints/{stage}/last.ckpt", weights_only=False)["state_dict"]
+                   for folder in (run_dir, uninterrupted)]
+        assert all(torch.equal(weights[0][key], weights[1][key]) for key in weights[1]), stage
 
 
 class Regression(L.LightningModule):

@@ -24,6 +24,7 @@ from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 from pipe.training.force_choice import force_weights
 from pipe.training.force_signature import force_signatures
+from pipe.training.random_state import RandomState
 from pipe.training.stages import HeadStage, VAEStage, check_head_loss
 from pipe.training.trainer import (
     checkpoint_dir,
@@ -50,6 +51,7 @@ def fit_stage(trainer: L.Trainer, module: L.LightningModule, train: DataLoader, 
     if resume_from:
         check_resumable(module, resume_from, stage)     # before the loss log is touched
         forget_epochs_after(run_dir, stage, resume_from)
+    trainer.callbacks.append(RandomState(train.generator))    # a resumed fit draws what an uninterrupted one would
     start = time.perf_counter()
     with process_threads(trainer):
         try:
