@@ -22,6 +22,7 @@ from pipe.data.prepared import PartData
 from pipe.errors import PipeError
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
+from pipe.training.codes_source import CodesSource, resumable_head, stage_one_source
 from pipe.training.force_choice import force_weights
 from pipe.training.force_signature import force_signatures
 from pipe.training.random_state import RandomState
@@ -158,9 +159,13 @@ def fit_head(cfg: DictConfig, model: PIPEModel, latents: torch.Tensor, index: di
              stage_class: type[HeadStage] = HeadStage) -> StageFit:
     """Stage 2 (`cfg.stages.head`): the encoder frozen, the head learns the training trials' force through
     the dynamic model, trained by `stage_class` (an experiment's variant of HeadStage); `latents` holds the
-    parts' codes at the rows `index` gives."""
+    parts' codes at the rows `index` gives. Resumed, it starts over if stage 1 trained further since
+    (pipe.training.codes_source)."""
     stage = cfg.stages.head
+    source = stage_one_source(run_dir)
+    resume = resume and resumable_head(run_dir, source)
     trainer = make_trainer(cfg.trainer, run_dir, "head", stage.epochs, bool(val), loggers, resume)
+    trainer.callbacks.append(CodesSource(source))
     batch = per_process_batch(stage.batch_size, trainer)
     return fit_stage(trainer, stage_class(model, latents, lr=stage.lr, loss=head_loss(cfg)),
                      trial_loader(train, index, batch, True, cfg.seed),
