@@ -500,6 +500,48 @@ def test_candidate_ensemble_summary_gives_the_validation_margin_part_by_part(tmp
 
 
 @pytest.mark.slow
+def test_validation_size_scores_the_runs_own_validation_parts_as_its_choice_did_and_the_extra_ones(tmp_path):
+    """On a 7-part rect family (2 test, 2 validation, 3 training parts) regenerated with 9 parts: the extra
+    parts are the two the curve does not use, and on the run's own validation parts each candidate's mean
+    stage-2 loss is the validation objective its choice compared (training.json)."""
+    from conftest import compose_config
+
+    from pipe.pipeline import run_domain
+    from pipe.synthetic import generate_dataset
+
+    run = run_domain(compose_config([
+        "experiment=smoke", "data=family", "data.generate.family=rect", "data.generate.count=7",
+        f"data.dir={tmp_path / 'family'}", "domain=curve", "domain.test_count=2", "domain.val_count=2",
+        "domain.train_count=3", f"paths.output_dir={tmp_path / 'run'}", "mlflow.enabled=false",
+        "stages.vae.force_weight=[0,1000]"]))
+    larger = generate_dataset(tmp_path / "larger", family="rect", count=9, seed=0)
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("validation_size.py", str(rows_file), str(larger), str(run.run_dir))
+    row = json.loads(rows_file.read_text())
+    assert row["extra"] == ["rect_0007", "rect_0008"]
+    for weight, objective in row["objectives"].items():
+        scores = row[f"force_weight_{weight}"]
+        assert list(scores["loss"]) == list(scores["fit_F"]) == ["rect_0002", "rect_0003", *row["extra"]]
+        assert statistics.mean([scores["loss"]["rect_0002"], scores["loss"]["rect_0003"]]) == pytest.approx(
+            objective, rel=1e-5)
+
+
+def test_validation_size_summary_gives_the_margins_on_the_own_the_extra_and_all_parts(tmp_path):
+    """Hand-computed: loss differences (weight 1000 minus 0) of 0.1 and 0.3 on the own parts (mean 0.2,
+    standard error 0.1: keeps 0), -0.2 and -0.4 on the extra ones (mean -0.3: keeps 1000), all four mean -0.05,
+    standard error sqrt((0.29 / 3) / 4) = 0.1555."""
+    losses = {"a": 0.1, "b": 0.3, "c": -0.2, "d": -0.4}
+    row = {"run": "r/seed_0", "chosen_weight": 0.0, "extra": ["c", "d"],
+           "force_weight_0": {"loss": dict.fromkeys(losses, 1.0), "fit_F": dict.fromkeys(losses, 50.0)},
+           "force_weight_1000": {"loss": {p: 1.0 + d for p, d in losses.items()},
+                                 "fit_F": {p: 50.0 - 100 * d for p, d in losses.items()}}}
+    printed = printed_table("validation_size.py", [row], tmp_path, "--summary")
+    assert printed.splitlines() == [
+        "r/seed_0 (kept 0): own 2: loss +0.2000 ± 0.1000, FIT -20.00 ± 10.00 -> keeps 0; extra 2: loss -0.3000 ± "
+        "0.1000, FIT +30.00 ± 10.00 -> keeps 1000; all 4: loss -0.0500 ± 0.1555, FIT +5.00 ± 15.55 -> keeps 1000"]
+
+
+@pytest.mark.slow
 def test_candidate_cv_holds_out_each_non_test_part_per_candidate_as_part_cv_does(tiny_data, tmp_path):
     """Each candidate's PIPE on a held-out part is part_cv's `default` on that candidate's folder to the digit;
     the ensemble fits each held-out part at least as well as the two candidates on average (FIT is concave in
