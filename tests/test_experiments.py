@@ -499,22 +499,30 @@ def test_candidate_ensemble_summary_gives_the_validation_margin_part_by_part(tmp
                                     "77.50"]
 
 
-@pytest.mark.slow
-def test_validation_size_scores_the_runs_own_validation_parts_as_its_choice_did_and_the_extra_ones(tmp_path):
-    """On a 7-part rect family (2 test, 2 validation, 3 training parts) regenerated with 9 parts: the extra
-    parts are the two the curve does not use, and on the run's own validation parts each candidate's mean
-    stage-2 loss is the validation objective its choice compared (training.json)."""
+@pytest.fixture(scope="module")
+def family_run(tmp_path_factory):
+    """A smoke run of both force weights on a 7-part rect family (2 test, 2 validation, 3 training parts), and
+    the family generated again with 9 parts: the curve's 7 unchanged and the 2 it does not use."""
     from conftest import compose_config
 
     from pipe.pipeline import run_domain
     from pipe.synthetic import generate_dataset
 
+    folder = tmp_path_factory.mktemp("family_run")
     run = run_domain(compose_config([
         "experiment=smoke", "data=family", "data.generate.family=rect", "data.generate.count=7",
-        f"data.dir={tmp_path / 'family'}", "domain=curve", "domain.test_count=2", "domain.val_count=2",
-        "domain.train_count=3", f"paths.output_dir={tmp_path / 'run'}", "mlflow.enabled=false",
+        f"data.dir={folder / 'family'}", "domain=curve", "domain.test_count=2", "domain.val_count=2",
+        "domain.train_count=3", f"paths.output_dir={folder / 'run'}", "mlflow.enabled=false",
         "stages.vae.force_weight=[0,1000]"]))
-    larger = generate_dataset(tmp_path / "larger", family="rect", count=9, seed=0)
+    return run, generate_dataset(folder / "larger", family="rect", count=9, seed=0)
+
+
+@pytest.mark.slow
+def test_validation_size_scores_the_runs_own_validation_parts_as_its_choice_did_and_the_extra_ones(family_run,
+                                                                                                 tmp_path):
+    """The extra parts are the two the curve does not use, and on the run's own validation parts each
+    candidate's mean stage-2 loss is the validation objective its choice compared (training.json)."""
+    run, larger = family_run
     rows_file = tmp_path / "rows.jsonl"
     run_script("validation_size.py", str(rows_file), str(larger), str(run.run_dir))
     row = json.loads(rows_file.read_text())
@@ -524,6 +532,39 @@ def test_validation_size_scores_the_runs_own_validation_parts_as_its_choice_did_
         assert list(scores["loss"]) == list(scores["fit_F"]) == ["rect_0002", "rect_0003", *row["extra"]]
         assert statistics.mean([scores["loss"]["rect_0002"], scores["loss"]["rect_0003"]]) == pytest.approx(
             objective, rel=1e-5)
+
+
+@pytest.mark.slow
+def test_more_test_parts_reproduces_the_runs_test_parts_and_adds_the_extra_ones(family_run, tmp_path):
+    """On the run's own test parts every method's FIT(F) is the run's to a relative 1e-6 (the oracle's fits read
+    from its cache, PIPE and `nearest` rebuilt from the kept candidate's checkpoints, simulated in float32);
+    the extra parts come after them."""
+    run, larger = family_run
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("more_test_parts.py", str(rows_file), str(larger), str(run.run_dir))
+    row = json.loads(rows_file.read_text())
+    assert row["extra"] == ["rect_0007", "rect_0008"] and row["train_parts"] == 3
+    for name in ("pipe", "nearest", "oracle"):
+        assert list(row["fit_F"][name]) == ["rect_0000", "rect_0001", *row["extra"]]
+        for part, metrics in run.results[name].per_part.items():
+            assert row["fit_F"][name][part] == pytest.approx(metrics["fit_F"], rel=1e-6, abs=1e-6)
+
+
+def test_more_test_parts_summary_gives_each_subset_over_the_seeds_and_the_share_of_the_gap(tmp_path):
+    """Hand-computed, two seeds: PIPE 70 and 74 on the test part (72 ± 2.83), `nearest` 60, the oracle 80: it
+    closes (72 - 60) / (80 - 60) = 60 % of the gap, the mark 70; on the extra part PIPE 50 against `nearest` 60
+    and the oracle 90: -33.3 %."""
+    def row(pipe_test):
+        return {"run": "r", "train_parts": 100, "extra": ["rect_0130"],
+                "fit_F": {"pipe": {"rect_0000": pipe_test, "rect_0130": 50.0},
+                          "nearest": {"rect_0000": 60.0, "rect_0130": 60.0},
+                          "oracle": {"rect_0000": 80.0, "rect_0130": 90.0}}}
+
+    lines = printed_table("more_test_parts.py", [row(70.0), row(74.0)], tmp_path, "--summary").splitlines()
+    assert lines[0] == ("rect 100 parts, test 1: pipe 72.00 ± 2.83, nearest 60.00 ± 0.00, oracle 80.00 ± 0.00; "
+                        "PIPE closes 60.0 % of the gap (mark 70.00; 2 seeds)")
+    assert lines[1].startswith("rect 100 parts, extra 1: pipe 50.00 ± 0.00") and "closes -33.3 %" in lines[1]
+    assert lines[2].startswith("rect 100 parts, all 2: pipe 61.00 ± 1.41")
 
 
 def test_validation_size_summary_gives_the_margins_on_the_own_the_extra_and_all_parts(tmp_path):

@@ -1,0 +1,77 @@
+"""Issue 9, the learning curve's verdict on more held-out parts: a finished seed folder of the curve, its kept
+model rebuilt from its checkpoints, scored with `nearest` and the oracle on its 20 test parts and on the
+family's parts after the curve's 130 (`pipe data generate OUT --family F --count 170` gives the curve's parts
+unchanged and 40 more, which no run trains, validates or chooses on). The oracle's identification is the
+run's own (its settings and its cache of fits, so the 20 test parts' fits are read, not fitted again). One
+JSON line per run: each method's FIT(F) per part. Results: docs/experiments.md, "The curve's verdict on 40
+more held-out parts".
+Usage (one thread, as the results were measured):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/more_test_parts.py OUT.jsonl DATASET runs/rect/seed_0 ...
+  python experiments/more_test_parts.py OUT.jsonl --summary
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from common import append_row, kept_folder, results
+from validation_size import with_extra_parts
+
+from pipe.pipeline import latent_codes
+
+METHODS = ["pipe", "nearest", "oracle"]
+
+
+def scores(run: Path, dataset: Path) -> dict:
+    cfg, data, model, extra = with_extra_parts(kept_folder(run), dataset, "test")
+    latents, _, index = latent_codes(model, data)
+    found = results(cfg, data, model, latents.detach(), index, "test", METHODS)
+    return {"run": str(run), "train_parts": len(data.splits["train"]), "extra": extra,
+            "fit_F": {name: {part: metrics["fit_F"] for part, metrics in result.per_part.items()}
+                      for name, result in found.items()}}
+
+
+def summary(rows_file: str) -> None:
+    """Per family and number of training parts: each method's FIT(F), mean ± std over the seeds, on the 20
+    test parts, the extra parts and all of them, and the share of the gap from `nearest` to the oracle that
+    PIPE closes."""
+    groups = defaultdict(list)
+    for line in Path(rows_file).read_text().splitlines():
+        row = json.loads(line)
+        family = next(iter(row["fit_F"]["pipe"])).rsplit("_", 1)[0]
+        groups[family, row["train_parts"]].append(row)
+    for (family, count), rows in sorted(groups.items()):
+        every = list(rows[0]["fit_F"]["pipe"])
+        extra = rows[0]["extra"]
+        subsets = {f"test {len(every) - len(extra)}": [p for p in every if p not in extra],
+                   f"extra {len(extra)}": extra, f"all {len(every)}": every}
+        for label, parts in subsets.items():
+            means = {name: np.array([np.mean([row["fit_F"][name][p] for p in parts]) for row in rows])
+                     for name in METHODS}
+            text = ", ".join(f"{name} {m.mean():.2f} ± {m.std(ddof=1) if len(m) > 1 else 0.0:.2f}"
+                             for name, m in means.items())
+            gap = means["oracle"].mean() - means["nearest"].mean()
+            share = (means["pipe"].mean() - means["nearest"].mean()) / gap
+            print(f"{family} {count} parts, {label}: {text}; PIPE closes {100 * share:.1f} % of the gap "
+                  f"(mark {means['nearest'].mean() + gap / 2:.2f}; {len(rows)} seeds)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", help="JSON lines file to append to (with --summary: to read)")
+    ap.add_argument("dataset", nargs="?", help="the family generated with more parts than the curve's 130")
+    ap.add_argument("runs", nargs="*", help="finished seed folders of the learning curve")
+    ap.add_argument("--summary", action="store_true", help="print the table per family and size")
+    args = ap.parse_args()
+    if args.summary:
+        summary(args.out)
+        return
+    for run in args.runs:
+        append_row(args.out, scores(Path(run), Path(args.dataset)))
+
+
+if __name__ == "__main__":
+    main()
