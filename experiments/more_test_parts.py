@@ -1,10 +1,11 @@
 """Issue 9, the learning curve's verdict on more held-out parts: a finished seed folder of the curve, its kept
-model rebuilt from its checkpoints, scored with `nearest` and the oracle on its 20 test parts and on the
-family's parts after the curve's 130 (`pipe data generate OUT --family F --count 170` gives the curve's parts
-unchanged and 40 more, which no run trains, validates or chooses on). The oracle's identification is the
-run's own (its settings and its cache of fits, so the 20 test parts' fits are read, not fitted again). One
-JSON line per run: each method's FIT(F) per part. Results: docs/experiments.md, "The curve's verdict on 40
-more held-out parts".
+model rebuilt from its checkpoints, scored with every baseline (or those `--methods` names) on its 20 test
+parts and on the family's parts after the curve's 130 (`pipe data generate OUT --family F --count 170` gives
+the curve's parts unchanged and 40 more, which no run trains, validates or chooses on). The oracle's
+identification is the run's own (its settings and its cache of fits, so the 20 test parts' fits are read,
+not fitted again), and so are gpr's fits of the training parts. One JSON line per run: each method's FIT(F)
+per part (PIPE, `nearest` and the oracle are needed for the share of the gap). Results: docs/experiments.md,
+"The curve's verdict on 40 more held-out parts".
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/more_test_parts.py OUT.jsonl DATASET runs/rect/seed_0 ...
   python experiments/more_test_parts.py OUT.jsonl --summary
@@ -22,13 +23,13 @@ from validation_size import with_extra_parts
 
 from pipe.pipeline import latent_codes
 
-METHODS = ["pipe", "nearest", "oracle"]
+METHODS = ["pipe", "nearest", "oracle", "gpr", "blackbox"]
 
 
-def scores(run: Path, dataset: Path) -> dict:
+def scores(run: Path, dataset: Path, methods: list[str]) -> dict:
     cfg, data, model, extra = with_extra_parts(kept_folder(run), dataset, "test")
     latents, _, index = latent_codes(model, data)
-    found = results(cfg, data, model, latents.detach(), index, "test", METHODS)
+    found = results(cfg, data, model, latents.detach(), index, "test", methods)
     return {"run": str(run), "train_parts": len(data.splits["train"]), "extra": extra,
             "fit_F": {name: {part: metrics["fit_F"] for part, metrics in result.per_part.items()}
                       for name, result in found.items()}}
@@ -46,11 +47,12 @@ def summary(rows_file: str) -> None:
     for (family, count), rows in sorted(groups.items()):
         every = list(rows[0]["fit_F"]["pipe"])
         extra = rows[0]["extra"]
+        methods = [name for name in METHODS if all(name in row["fit_F"] for row in rows)]
         subsets = {f"test {len(every) - len(extra)}": [p for p in every if p not in extra],
                    f"extra {len(extra)}": extra, f"all {len(every)}": every}
         for label, parts in subsets.items():
             means = {name: np.array([np.mean([row["fit_F"][name][p] for p in parts]) for row in rows])
-                     for name in METHODS}
+                     for name in methods}
             text = ", ".join(f"{name} {m.mean():.2f} ± {m.std(ddof=1) if len(m) > 1 else 0.0:.2f}"
                              for name, m in means.items())
             gap = means["oracle"].mean() - means["nearest"].mean()
@@ -64,13 +66,15 @@ def main() -> None:
     ap.add_argument("out", help="JSON lines file to append to (with --summary: to read)")
     ap.add_argument("dataset", nargs="?", help="the family generated with more parts than the curve's 130")
     ap.add_argument("runs", nargs="*", help="finished seed folders of the learning curve")
+    ap.add_argument("--methods", default="pipe,nearest,oracle,gpr,blackbox",
+                    help="comma-separated methods to score (pipe, nearest and oracle at least)")
     ap.add_argument("--summary", action="store_true", help="print the table per family and size")
     args = ap.parse_args()
     if args.summary:
         summary(args.out)
         return
     for run in args.runs:
-        append_row(args.out, scores(Path(run), Path(args.dataset)))
+        append_row(args.out, scores(Path(run), Path(args.dataset), args.methods.split(",")))
 
 
 if __name__ == "__main__":

@@ -536,15 +536,16 @@ def test_validation_size_scores_the_runs_own_validation_parts_as_its_choice_did_
 
 @pytest.mark.slow
 def test_more_test_parts_reproduces_the_runs_test_parts_and_adds_the_extra_ones(family_run, tmp_path):
-    """On the run's own test parts every method's FIT(F) is the run's to a relative 1e-6 (the oracle's fits read
-    from its cache, PIPE and `nearest` rebuilt from the kept candidate's checkpoints, simulated in float32);
-    the extra parts come after them."""
+    """On the run's own test parts every method's FIT(F) is the run's to a relative 1e-6 (the oracle's and gpr's
+    fits read from its cache, PIPE and `nearest` rebuilt from the kept candidate's checkpoints, the blackbox
+    trained again from the run's seed; simulated in float32); the extra parts come after them."""
     run, larger = family_run
     rows_file = tmp_path / "rows.jsonl"
     run_script("more_test_parts.py", str(rows_file), str(larger), str(run.run_dir))
     row = json.loads(rows_file.read_text())
     assert row["extra"] == ["rect_0007", "rect_0008"] and row["train_parts"] == 3
-    for name in ("pipe", "nearest", "oracle"):
+    assert set(row["fit_F"]) == {"pipe", "nearest", "oracle", "gpr", "blackbox"}
+    for name in row["fit_F"]:
         assert list(row["fit_F"][name]) == ["rect_0000", "rect_0001", *row["extra"]]
         for part, metrics in run.results[name].per_part.items():
             assert row["fit_F"][name][part] == pytest.approx(metrics["fit_F"], rel=1e-6, abs=1e-6)
