@@ -18,8 +18,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from common import append_row, kept_folder, results
-from validation_size import with_extra_parts
+from common import append_row, kept_folder, results, with_extra_parts
 
 from pipe.pipeline import latent_codes
 

@@ -16,49 +16,16 @@ import argparse
 import json
 from pathlib import Path
 
-import lightning as L
 import numpy as np
 import torch
 from candidate_ensemble import part_fits
-from common import append_row, load_encoder, load_head_stage, two_candidates
-from omegaconf import DictConfig, OmegaConf, open_dict
+from common import append_row, two_candidates, with_extra_parts
 
 from pipe.data.batches import trial_loader
-from pipe.data.prepared import PreparedDomain
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.methods import model_forces
-from pipe.model import ltv
-from pipe.model.pipe_model import PIPEModel
-from pipe.pipeline import build_components, build_model, latent_codes, load_domain, training_record
+from pipe.pipeline import latent_codes, training_record
 from pipe.training.fit import head_loss
-
-
-def extra_parts(dataset: Path, family: str, used: int) -> list[str]:
-    """The dataset's parts of the family numbered from `used` on (those the curve does not use)."""
-    names = sorted(p.name for p in (dataset / "parts").iterdir() if p.name.startswith(f"{family}_"))
-    return [name for name in names if int(name.rsplit("_", 1)[1]) >= used]
-
-
-def with_extra_parts(candidate: Path, dataset: Path, split: str) -> tuple[DictConfig, PreparedDomain, PIPEModel,
-                                                                         list[str]]:
-    """A trained curve run (or candidate) rebuilt from its checkpoints on `dataset`, the family generated with
-    more parts, whose parts after the curve's are added to its `split`: its config, domain, model (eval mode)
-    and the added parts' names."""
-    cfg = OmegaConf.load(candidate / "config.yaml")
-    family, used = cfg.domain.family, int(cfg.data.generate.count)
-    extra = extra_parts(dataset, family, used)
-    with open_dict(cfg):
-        cfg.trainer.progress_bar = False
-        cfg.data.dir, cfg.data.generate.count = str(dataset), used + len(extra)
-        cfg.domain[split] = [*cfg.domain[split], *extra]
-    ltv.set_backend(cfg.simulator)
-    L.seed_everything(cfg.seed, workers=True)
-    data = load_domain(cfg)
-    components = build_components(cfg)
-    load_encoder(components[0], candidate)
-    model = build_model(cfg, data, components)
-    load_head_stage(model, candidate / "checkpoints/head/best.ckpt")
-    return cfg, data, model.eval(), extra
 
 
 def candidate_scores(candidate: Path, dataset: Path) -> dict[str, dict[str, float]]:
