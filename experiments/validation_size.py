@@ -1,5 +1,5 @@
 """Issue 9, decision (d): would more validation parts choose stage 1's force weight differently? For finished
-seed folders of the learning curve, each of the run's two trained candidates (force weights 0 and 1000) is
+seed folders of the learning curve, each of the run's two trained candidates (force weights 0 and 1000 by default) is
 rebuilt from its checkpoints and scored on its 10 validation parts and on extra validation parts: the family's
 parts after the 130 the curve uses, from the same generator and seed (`pipe data generate OUT --family F
 --count 170` gives the curve's 130 parts unchanged and 40 more). The checkpoints are the run's own, chosen on
@@ -26,6 +26,7 @@ from pipe.evaluation.context import EvalContext
 from pipe.evaluation.methods import model_forces
 from pipe.pipeline import latent_codes, training_record
 from pipe.training.fit import head_loss
+from pipe.training.force_choice import CANDIDATE_PREFIX
 
 
 def candidate_scores(candidate: Path, dataset: Path) -> dict[str, dict[str, float]]:
@@ -44,8 +45,8 @@ def candidate_scores(candidate: Path, dataset: Path) -> dict[str, dict[str, floa
 
 
 def scores(run: Path, dataset: Path) -> dict:
-    row = {"run": str(run), "chosen_weight": training_record(run)["force_weight"]["chosen"],
-           "objectives": training_record(run)["force_weight"]["objectives"]}
+    choice = training_record(run)["force_weight"]
+    row = {"run": str(run), "chosen_weight": choice["chosen"], "objectives": choice["objectives"]}
     for candidate in two_candidates(run):
         found = candidate_scores(candidate, dataset)
         row["extra"] = found.pop("extra")
@@ -53,25 +54,35 @@ def scores(run: Path, dataset: Path) -> dict:
     return row
 
 
+def weights(row: dict) -> tuple[float, float]:
+    """The row's two candidate weights (its force_weight_<w> entries), lighter first."""
+    found = [float(key.removeprefix(CANDIDATE_PREFIX)) for key in row if key.startswith(CANDIDATE_PREFIX)]
+    lighter, heavier = sorted(found)
+    return lighter, heavier
+
+
 def margin(row: dict, measure: str, parts: list[str]) -> tuple[float, float]:
-    """Weight 1000's per-part `measure` minus weight 0's over `parts`: the mean and its standard error."""
-    differences = np.array([row["force_weight_1000"][measure][p] - row["force_weight_0"][measure][p] for p in parts])
+    """The heavier weight's per-part `measure` minus the lighter's over `parts`: the mean and its standard error."""
+    lighter, heavier = (row[f"{CANDIDATE_PREFIX}{weight:g}"][measure] for weight in weights(row))
+    differences = np.array([heavier[p] - lighter[p] for p in parts])
     return float(differences.mean()), float(differences.std(ddof=1) / np.sqrt(len(differences)))
 
 
 def summary(rows_file: str) -> None:
-    """Per run: the weight it kept, and the margins on its own validation parts, on the extra parts and on all
-    of them (loss: lower is better, so a negative margin keeps 1000; FIT(F): a positive one)."""
+    """Per run: the weight it kept, and the margins (heavier weight minus lighter) on its own validation parts,
+    on the extra parts and on all of them (loss: lower is better, so a negative margin keeps the heavier weight;
+    FIT(F): a positive one)."""
     for line in Path(rows_file).read_text().splitlines():
         row = json.loads(line)
-        every = list(row["force_weight_0"]["loss"])
+        lighter, heavier = weights(row)
+        every = list(row[f"{CANDIDATE_PREFIX}{lighter:g}"]["loss"])
         own = [p for p in every if p not in row["extra"]]
         groups = {f"own {len(own)}": own, f"extra {len(row['extra'])}": row["extra"], f"all {len(every)}": every}
         text = []
         for label, parts in groups.items():
             (loss, loss_se), (fit, fit_se) = margin(row, "loss", parts), margin(row, "fit_F", parts)
             text.append(f"{label}: loss {loss:+.4f} ± {loss_se:.4f}, FIT {fit:+.2f} ± {fit_se:.2f} "
-                        f"-> keeps {1000 if loss < 0 else 0}")
+                        f"-> keeps {heavier if loss < 0 else lighter:g}")
         print(f"{row['run']} (kept {row['chosen_weight']:g}): " + "; ".join(text))
 
 
