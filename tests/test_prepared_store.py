@@ -98,14 +98,16 @@ def test_a_stale_folder_is_refused_by_name(tiny_copy, tmp_path, change, message)
     assert MANIFEST in str(error.value) and "pipe data preprocess" in str(error.value)
 
 
-def test_a_folder_of_an_earlier_format_is_refused_by_name(tiny_copy, tmp_path):
-    """Format 1 had no mesh slices: such a folder is made again, never read with the slices missing."""
+@pytest.mark.parametrize("earlier", [1, 2])
+def test_a_folder_of_an_earlier_format_is_refused_by_name(tiny_copy, tmp_path, earlier):
+    """Format 1 had no mesh slices, format 2 cut a face lying in a slice's plane on whichever side rounding put
+    it: such a folder is made again, never read with the slices missing or cut the old way."""
     data_cfg, domain_cfg = configs()
     write_prepared(tiny_copy, tmp_path / "prepared", SETTINGS)
     manifest = tmp_path / "prepared" / MANIFEST
-    manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "format": 1}))
-    with pytest.raises(PipeError, match="was written in format 1 of prepared parts, this version of pipe reads "
-                                        "format 2; preprocess again: pipe data preprocess"):
+    manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "format": earlier}))
+    with pytest.raises(PipeError, match=f"was written in format {earlier} of prepared parts, this version of pipe "
+                                        "reads format 3; preprocess again: pipe data preprocess"):
         prepare_domain(tiny_copy, data_cfg, domain_cfg, tmp_path / "prepared")
 
 

@@ -4,6 +4,7 @@ the code PIPE and the baselines read, prediction from a mesh, and the settings a
 
 from __future__ import annotations
 
+import io
 import math
 
 import numpy as np
@@ -47,6 +48,39 @@ def test_slices_count_a_shells_pins_apart_and_measure_their_outlines():
     short = trimesh.creation.cylinder(1.0, 8.0, sections=n)
     assert slice_descriptor(short, (10.0,)) == pytest.approx([0.0, math.log(FLOOR), math.log(FLOOR)])
     assert slice_descriptor(short).shape == (SLICE_SIZE,) and SLICE_SIZE == 3 * len(SLICE_DEPTHS_MM)
+
+
+def stepped_shaft(shoulder_mm: float, n: int = 16) -> trimesh.Trimesh:
+    """A shaft of radius 1 from z 0 to `shoulder_mm`, then a collar of radius 3 to z 5, as n-gons."""
+    outline = [[0.0, 0.0], [1.0, 0.0], [1.0, shoulder_mm], [3.0, shoulder_mm], [3.0, 5.0], [0.0, 5.0]]
+    return trimesh.creation.revolve(np.array(outline), sections=n)
+
+
+@pytest.mark.parametrize("rounding_mm", [0.0, 5e-7, -5e-7])
+def test_a_shoulder_in_the_cutting_plane_is_cut_beyond_whichever_way_it_was_rounded(rounding_mm):
+    """A shoulder 2 mm up, exact or moved 5e-7 mm either way (float32 rounding), is cut on the collar's side:
+    one region, the radius-3 16-gon's perimeter and area (n r^2 sin(2 pi / n) / 2). Before, the shoulder
+    rounded upwards was cut through the shaft (area 3.06 instead of 27.55)."""
+    n, r = 16, 3.0
+    expected = [math.log(2), math.log(2 * n * r * math.sin(math.pi / n)),
+                math.log(n * r * r * math.sin(2 * math.pi / n) / 2)]
+    assert slice_descriptor(stepped_shaft(2.0 + rounding_mm), (2.0,)) == pytest.approx(expected, abs=1e-6)
+
+
+@pytest.mark.parametrize("offset_mm", [0.3, 7.77, 13.7])
+def test_an_stl_slices_as_its_exact_mesh_though_its_float32_coordinates_move_a_shoulder(offset_mm):
+    """The stepped shaft placed `offset_mm` up and written as STL (float32): its shoulder lands up to 5e-7 mm off
+    2 mm from its end (above at 7.77), and its slices are the exact mesh's all the same."""
+    exact = stepped_shaft(2.0).apply_translation((0.0, 0.0, offset_mm))
+    stored = trimesh.load(io.BytesIO(exact.export(file_type="stl")), file_type="stl")
+    assert slice_descriptor(stored) == pytest.approx(slice_descriptor(exact), abs=1e-5)
+
+
+def test_a_pin_ending_in_the_cutting_plane_is_cut_beyond_its_end():
+    """A pin 10 mm long, its end exactly in the 10 mm plane or 5e-7 mm under it, has no section there."""
+    for length in (10.0, 10.0 - 5e-7):
+        pin = trimesh.creation.cylinder(1.0, length, sections=16).apply_translation((0.0, 0.0, length / 2))
+        assert slice_descriptor(pin, (10.0,)) == pytest.approx([0.0, math.log(FLOOR), math.log(FLOOR)])
 
 
 def test_real_cad_slices_into_finite_numbers_and_a_pins_outline_is_its_circumference(real_meshes):

@@ -28,7 +28,8 @@ from pipe.data.spec import DatasetSpec, load_spec
 from pipe.errors import PipeError
 
 MANIFEST = "prepared.json"
-FORMAT = 2      # 2: each part's mesh slices (pipe.data.slices) beside its cloud
+FORMAT = 3      # 2: each part's mesh slices (pipe.data.slices) beside its cloud; 3: those slices cut beyond a
+                # face lying in their plane (pipe.data.slices.cutting_height)
 
 
 @dataclass(frozen=True)
