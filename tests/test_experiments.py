@@ -584,6 +584,45 @@ def test_validation_size_summary_gives_the_margins_on_the_own_the_extra_and_all_
 
 
 @pytest.mark.slow
+def test_blackbox_extrapolation_reproduces_the_runs_blackbox_and_clips_only_inputs_outside_the_training_range(
+        family_run, tmp_path):
+    """On the run's own test parts the blackbox's FIT(F) is the run's (trained again from its seed); with its
+    inputs clipped to the training parts' range it is the same where no input lies outside it; each part's
+    largest measured force is its trials' largest |F|."""
+    run, larger = family_run
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("blackbox_extrapolation.py", str(rows_file), str(larger), str(run.run_dir))
+    row = json.loads(rows_file.read_text())
+    assert row["extra"] == ["rect_0007", "rect_0008"] and len(row["train"]) == row["train_parts"] == 3
+    assert list(row["parts"]) == ["rect_0000", "rect_0001", *row["extra"]]
+    for name, metrics in run.results["blackbox"].per_part.items():
+        assert row["parts"][name]["fit_F"] == pytest.approx(metrics["fit_F"], rel=1e-6, abs=1e-6)
+    for part in row["parts"].values():
+        assert part["beyond"] >= 0.0 and part["largest_force"] > 0.0
+        if part["beyond"] == 0.0:
+            assert part["fit_F_clipped"] == part["fit_F"]
+    assert any(part["beyond"] > 0.0 for part in row["parts"].values())     # 3 training parts: some lie outside
+
+
+def test_blackbox_extrapolation_summary_gives_each_subset_over_the_seeds_and_names_the_collapses(tmp_path):
+    """Hand-computed, two seeds: on the test part 70 and 74 (72 ± 2.83), clipped 70 both; the extra part's
+    collapse (-500 in one seed) is listed with its column and distance, the other seed's 50 is not."""
+    def row(seed, test, extra):
+        part = {"fit_F_clipped": 70.0, "largest_force": 9.0, "measured_largest_force": 2.0, "beyond": 12.5,
+                "beyond_column": "slices[10]"}
+        return {"run": f"r/seed_{seed}", "train_parts": 5, "extra": ["pins_0152"], "inputs": "slices",
+                "parts": {"pins_0000": {**part, "fit_F": test}, "pins_0152": {**part, "fit_F": extra}}}
+
+    lines = printed_table("blackbox_extrapolation.py", [row(0, 70.0, -500.0), row(1, 74.0, 50.0)], tmp_path,
+                          "--summary").splitlines()
+    assert lines[0] == "5 training parts, test 1: fit_F 72.00 ± 2.83, fit_F_clipped 70.00 ± 0.00 (2 seeds)"
+    assert lines[1] == "5 training parts, extra 1: fit_F -225.00 ± 388.91, fit_F_clipped 70.00 ± 0.00 (2 seeds)"
+    assert lines[2].startswith("5 training parts, all 2: fit_F -76.50 ± ")
+    assert lines[3:] == ["  seed_0 pins_0152: FIT -500, clipped 70.0, largest |F| 9.00 N (measured 2.00), "
+                         "slices[10] 12.5 beyond the training range (reads slices)"]
+
+
+@pytest.mark.slow
 def test_candidate_cv_holds_out_each_non_test_part_per_candidate_as_part_cv_does(tiny_data, tmp_path):
     """Each candidate's PIPE on a held-out part is part_cv's `default` on that candidate's folder to the digit;
     the ensemble fits each held-out part at least as well as the two candidates on average (FIT is concave in
