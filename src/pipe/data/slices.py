@@ -27,7 +27,7 @@ SLICE_DEPTHS_MM = (0.5, 2.0, 5.0, 10.0)   # from the mating end: a D-sub's pins 
 SLICE_SIZE = 3 * len(SLICE_DEPTHS_MM)
 FLOOR = 1e-3                              # the log of an empty slice's length and area is floored here
 PLANE_TOLERANCE_MM = 1e-4                 # a face this near a cutting plane lies in it: above float32's
-                                          # rounding of coordinates up to a metre (6e-5 mm), below any feature
+                                          # spacing of coordinates up to a metre (6e-5 mm), below any feature
 
 
 def slice_regions(mesh: trimesh.Trimesh, height: float) -> shapely.Geometry | None:
@@ -48,8 +48,8 @@ def cutting_height(mesh: trimesh.Trimesh, height: float) -> float:
     """Where to cut for the plane z = `height`: there, or, where faces of the mesh lie in that plane (within
     PLANE_TOLERANCE_MM), just beyond the highest of them. A plane through a face cuts it on whichever side
     rounding put its vertices: an STL's float32 coordinates move a shoulder at 2 mm by 5e-7 mm either way, and
-    the section jumps between the narrow part and the wide one. Beyond is the side trimesh takes for a face
-    exactly in the plane, so a mesh whose faces are exactly there is cut as before."""
+    the section jumps between the narrow part and the wide one. Beyond is the side trimesh took for the faces
+    exactly in a plane that we met (a pin's end, a plug's shoulder), so those meshes are cut as before."""
     z = mesh.vertices[:, 2][mesh.faces]
     in_plane = np.all(np.abs(z - height) <= PLANE_TOLERANCE_MM, axis=1)
     return float(z[in_plane].max()) + PLANE_TOLERANCE_MM if in_plane.any() else height
