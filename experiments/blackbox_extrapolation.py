@@ -1,11 +1,13 @@
-"""Why the blackbox collapses on some of the 40 more held-out pins (issue 9: "a baseline below `mean` is
-investigated and explained"): a finished curve run rebuilt with the family's parts after the curve's added to
+"""Why the blackbox collapses on a few held-out parts (issue 9: "a baseline below `mean` is investigated and
+explained"): a finished curve run rebuilt with the family's parts after the curve's added to
 its test parts (as experiments/more_test_parts.py does), the blackbox fitted as the evaluation fits it, and per
 held-out part: its FIT(F), the largest |force| it predicts, how far the part's inputs lie outside the training
 parts' (the largest distance beyond their range, in the blackbox's standardised input units, and in which
-block and column), and its FIT(F) with each input clipped to the training parts' range (the same fitted network; the
-training inputs lie inside it, so only the prediction changes). One JSON line per run. Results:
-docs/experiments.md, "Why the blackbox collapses on a few new pins".
+block and column), its FIT(F) with each input clipped to the training parts' range (the same fitted network; the
+training inputs lie inside it, so only the prediction changes), and whether PIPE's extrapolation warning flags
+it (`pipe.model.novelty`: its distance to the nearest training part over their coverage radius, in the head's
+input). One JSON line per run. Results: docs/experiments.md, "Why the blackbox collapses on a few held-out
+parts: it extrapolates".
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/blackbox_extrapolation.py OUT.jsonl DATASET RUN ...
   python experiments/blackbox_extrapolation.py OUT.jsonl --summary
@@ -24,6 +26,7 @@ from common import append_row, kept_folder, with_extra_parts
 from pipe.evaluation import methods
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import score
+from pipe.model.novelty import novelty
 from pipe.pipeline import latent_codes
 
 
@@ -48,8 +51,11 @@ def rows(run: Path, dataset: Path) -> dict:
     clipped.__dict__.update(blackbox.__dict__)
     clipped._inputs = lambda c, part, depth: torch.maximum(torch.minimum(
         blackbox._inputs(c, part, depth), high), low)
+    test = data.splits["test"]
+    reference = torch.stack([ctx.latent(part) for part in ctx.train])
+    warnings = novelty(torch.stack([ctx.latent(part) for part in test]), reference, [p.name for p in ctx.train])
     per_part = {}
-    for part in data.splits["test"]:
+    for part, warning in zip(test, warnings):
         inputs = torch.cat([blackbox._inputs(ctx, part, p.depth) for p in part.profiles])
         beyond = (torch.relu(inputs - high) + torch.relu(low - inputs)).amax(0)
         worst = int(beyond.argmax())
@@ -59,7 +65,7 @@ def rows(run: Path, dataset: Path) -> dict:
             "fit_F_clipped": score(clipped, ctx, part, clipped.predict(ctx, part))["fit_F"],
             "largest_force": float(max(np.abs(f).max() for f in forces)),
             "measured_largest_force": float(max(np.abs(p.force).max() for p in part.profiles)),
-            "beyond": float(beyond[worst]), "beyond_column": names[worst]}
+            "beyond": float(beyond[worst]), "beyond_column": names[worst], "novelty_ratio": warning.ratio}
     return {"run": str(run), "train_parts": len(data.splits["train"]), "extra": extra,
             "inputs": blackbox.inputs, "train": [p.name for p in ctx.train], "parts": per_part}
 
@@ -67,7 +73,8 @@ def rows(run: Path, dataset: Path) -> dict:
 def summary(rows_file: str) -> None:
     """Per number of training parts: the blackbox's FIT(F) as fitted and with its inputs clipped, mean ± std
     over the seeds, on the run's own test parts, the extra parts and all of them; then each part it scores
-    below -100 % on, with how far its inputs lie outside the training parts'."""
+    below -100 % on, with how far its inputs lie outside the training parts' and PIPE's extrapolation ratio
+    there (flagged above 1)."""
     groups = defaultdict(list)
     for line in Path(rows_file).read_text().splitlines():
         row = json.loads(line)
@@ -88,7 +95,8 @@ def summary(rows_file: str) -> None:
                     print(f"  {Path(row['run']).name} {name}: FIT {part['fit_F']:.0f}, clipped "
                           f"{part['fit_F_clipped']:.1f}, largest |F| {part['largest_force']:.2f} N (measured "
                           f"{part['measured_largest_force']:.2f}), {part['beyond_column']} "
-                          f"{part['beyond']:.1f} beyond the training range (reads {row['inputs']})")
+                          f"{part['beyond']:.1f} beyond the training range (reads {row['inputs']}); "
+                          f"extrapolation ratio {part['novelty_ratio']:.2f}")
 
 
 def main() -> None:

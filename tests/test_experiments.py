@@ -587,8 +587,8 @@ def test_validation_size_summary_gives_the_margins_on_the_own_the_extra_and_all_
 def test_blackbox_extrapolation_reproduces_the_runs_blackbox_and_clips_only_inputs_outside_the_training_range(
         family_run, tmp_path):
     """On the run's own test parts the blackbox's FIT(F) is the run's (trained again from its seed); with its
-    inputs clipped to the training parts' range it is the same where no input lies outside it; each part's
-    largest measured force is its trials' largest |F|."""
+    inputs clipped to the training parts' range it is the same where no input lies outside it; the
+    extrapolation ratio is the run's own report's (PIPE's warning)."""
     run, larger = family_run
     rows_file = tmp_path / "rows.jsonl"
     run_script("blackbox_extrapolation.py", str(rows_file), str(larger), str(run.run_dir))
@@ -597,6 +597,10 @@ def test_blackbox_extrapolation_reproduces_the_runs_blackbox_and_clips_only_inpu
     assert list(row["parts"]) == ["rect_0000", "rect_0001", *row["extra"]]
     for name, metrics in run.results["blackbox"].per_part.items():
         assert row["parts"][name]["fit_F"] == pytest.approx(metrics["fit_F"], rel=1e-6, abs=1e-6)
+    from pipe.evaluation.report import novelty_of_test_parts
+
+    for name, warning in novelty_of_test_parts(run).items():
+        assert row["parts"][name]["novelty_ratio"] == pytest.approx(warning["ratio"], rel=1e-5)
     for part in row["parts"].values():
         assert part["beyond"] >= 0.0 and part["largest_force"] > 0.0
         if part["beyond"] == 0.0:
@@ -609,7 +613,7 @@ def test_blackbox_extrapolation_summary_gives_each_subset_over_the_seeds_and_nam
     collapse (-500 in one seed) is listed with its column and distance, the other seed's 50 is not."""
     def row(seed, test, extra):
         part = {"fit_F_clipped": 70.0, "largest_force": 9.0, "measured_largest_force": 2.0, "beyond": 12.5,
-                "beyond_column": "slices[10]"}
+                "beyond_column": "slices[10]", "novelty_ratio": 3.25}
         return {"run": f"r/seed_{seed}", "train_parts": 5, "extra": ["pins_0152"], "inputs": "slices",
                 "parts": {"pins_0000": {**part, "fit_F": test}, "pins_0152": {**part, "fit_F": extra}}}
 
@@ -619,7 +623,7 @@ def test_blackbox_extrapolation_summary_gives_each_subset_over_the_seeds_and_nam
     assert lines[1] == "5 training parts, extra 1: fit_F -225.00 ± 388.91, fit_F_clipped 70.00 ± 0.00 (2 seeds)"
     assert lines[2].startswith("5 training parts, all 2: fit_F -76.50 ± ")
     assert lines[3:] == ["  seed_0 pins_0152: FIT -500, clipped 70.0, largest |F| 9.00 N (measured 2.00), "
-                         "slices[10] 12.5 beyond the training range (reads slices)"]
+                         "slices[10] 12.5 beyond the training range (reads slices); extrapolation ratio 3.25"]
 
 
 @pytest.mark.slow
