@@ -74,7 +74,7 @@ def summary(rows_file: str) -> None:
     """Per number of training parts: the blackbox's FIT(F) as fitted and with its inputs clipped, mean ± std
     over the seeds, on the run's own test parts, the extra parts and all of them; then each part it scores
     below -100 % on, with how far its inputs lie outside the training parts' and PIPE's extrapolation ratio
-    there (flagged above 1)."""
+    there (flagged above 1); and how many parts that warning flags in each seed."""
     groups = defaultdict(list)
     for line in Path(rows_file).read_text().splitlines():
         row = json.loads(line)
@@ -89,6 +89,8 @@ def summary(rows_file: str) -> None:
             text = ", ".join(f"{key} {m.mean():.2f} ± {m.std(ddof=1) if len(m) > 1 else 0.0:.2f}"
                              for key, m in means.items())
             print(f"{count} training parts, {label}: {text} ({len(found)} seeds)")
+        flagged = [sum(part["novelty_ratio"] > 1.0 for part in row["parts"].values()) for row in found]
+        print(f"  PIPE's extrapolation warning flags {', '.join(map(str, flagged))} of the {len(every)} parts by seed")
         for row in found:
             for name, part in row["parts"].items():
                 if part["fit_F"] < -100:

@@ -609,8 +609,9 @@ def test_blackbox_extrapolation_reproduces_the_runs_blackbox_and_clips_only_inpu
 
 
 def test_blackbox_extrapolation_summary_gives_each_subset_over_the_seeds_and_names_the_collapses(tmp_path):
-    """Hand-computed, two seeds: on the test part 70 and 74 (72 ± 2.83), clipped 70 both; the extra part's
-    collapse (-500 in one seed) is listed with its column and distance, the other seed's 50 is not."""
+    """Hand-computed, two seeds: on the test part 70 and 74 (72 ± 2.83), clipped 70 both; both parts flagged
+    (ratio 3.25) in both seeds; the extra part's collapse (-500 in one seed) is listed with its column and
+    distance, the other seed's 50 is not."""
     def row(seed, test, extra):
         part = {"fit_F_clipped": 70.0, "largest_force": 9.0, "measured_largest_force": 2.0, "beyond": 12.5,
                 "beyond_column": "slices[10]", "novelty_ratio": 3.25}
@@ -622,7 +623,8 @@ def test_blackbox_extrapolation_summary_gives_each_subset_over_the_seeds_and_nam
     assert lines[0] == "5 training parts, test 1: fit_F 72.00 ± 2.83, fit_F_clipped 70.00 ± 0.00 (2 seeds)"
     assert lines[1] == "5 training parts, extra 1: fit_F -225.00 ± 388.91, fit_F_clipped 70.00 ± 0.00 (2 seeds)"
     assert lines[2].startswith("5 training parts, all 2: fit_F -76.50 ± ")
-    assert lines[3:] == ["  seed_0 pins_0152: FIT -500, clipped 70.0, largest |F| 9.00 N (measured 2.00), "
+    assert lines[3] == "  PIPE's extrapolation warning flags 2, 2 of the 2 parts by seed"
+    assert lines[4:] == ["  seed_0 pins_0152: FIT -500, clipped 70.0, largest |F| 9.00 N (measured 2.00), "
                          "slices[10] 12.5 beyond the training range (reads slices); extrapolation ratio 3.25"]
 
 
