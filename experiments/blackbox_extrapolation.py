@@ -53,9 +53,9 @@ def rows(run: Path, dataset: Path) -> dict:
         blackbox._inputs(c, part, depth), high), low)
     test = data.splits["test"]
     reference = torch.stack([ctx.latent(part) for part in ctx.train])
-    warnings = novelty(torch.stack([ctx.latent(part) for part in test]), reference, [p.name for p in ctx.train])
+    novelties = novelty(torch.stack([ctx.latent(part) for part in test]), reference, [p.name for p in ctx.train])
     per_part = {}
-    for part, warning in zip(test, warnings):
+    for part, found in zip(test, novelties):
         inputs = torch.cat([blackbox._inputs(ctx, part, p.depth) for p in part.profiles])
         beyond = (torch.relu(inputs - high) + torch.relu(low - inputs)).amax(0)
         worst = int(beyond.argmax())
@@ -65,7 +65,7 @@ def rows(run: Path, dataset: Path) -> dict:
             "fit_F_clipped": score(clipped, ctx, part, clipped.predict(ctx, part))["fit_F"],
             "largest_force": float(max(np.abs(f).max() for f in forces)),
             "measured_largest_force": float(max(np.abs(p.force).max() for p in part.profiles)),
-            "beyond": float(beyond[worst]), "beyond_column": names[worst], "novelty_ratio": warning.ratio}
+            "beyond": float(beyond[worst]), "beyond_column": names[worst], "novelty_ratio": found.ratio}
     return {"run": str(run), "train_parts": len(data.splits["train"]), "extra": extra,
             "inputs": blackbox.inputs, "train": [p.name for p in ctx.train], "parts": per_part}
 
