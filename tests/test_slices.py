@@ -77,8 +77,9 @@ def test_an_stl_slices_as_its_exact_mesh_though_its_float32_coordinates_move_a_s
 
 
 def test_a_pin_ending_in_the_cutting_plane_is_cut_beyond_its_end():
-    """A pin 10 mm long, its end exactly in the 10 mm plane or 5e-7 mm under it, has no section there."""
-    for length in (10.0, 10.0 - 5e-7):
+    """A pin 10 mm long, its end exactly in the 10 mm plane or rounded 5e-7 mm beyond it, has no section there
+    (before, the longer one was cut through its end: a full disc)."""
+    for length in (10.0, 10.0 + 5e-7):
         pin = trimesh.creation.cylinder(1.0, length, sections=16).apply_translation((0.0, 0.0, length / 2))
         assert slice_descriptor(pin, (10.0,)) == pytest.approx([0.0, math.log(FLOOR), math.log(FLOOR)])
 
