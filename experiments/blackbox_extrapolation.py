@@ -15,13 +15,13 @@ Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
-import json
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import torch
 from common import append_row, kept_folder, with_extra_parts
+from summarise import read_rows, spread
 
 from pipe.evaluation import methods
 from pipe.evaluation.context import EvalContext
@@ -76,8 +76,7 @@ def summary(rows_file: str) -> None:
     below -100 % on, with how far its inputs lie outside the training parts' and PIPE's extrapolation ratio
     there (flagged above 1); and how many parts that warning flags in each seed."""
     groups = defaultdict(list)
-    for line in Path(rows_file).read_text().splitlines():
-        row = json.loads(line)
+    for row in read_rows(rows_file):
         groups[row["train_parts"]].append(row)
     for count, found in sorted(groups.items()):
         every, extra = list(found[0]["parts"]), found[0]["extra"]
@@ -86,8 +85,7 @@ def summary(rows_file: str) -> None:
         for label, parts in subsets.items():
             means = {key: np.array([np.mean([row["parts"][p][key] for p in parts]) for row in found])
                      for key in ("fit_F", "fit_F_clipped")}
-            text = ", ".join(f"{key} {m.mean():.2f} ± {m.std(ddof=1) if len(m) > 1 else 0.0:.2f}"
-                             for key, m in means.items())
+            text = ", ".join(f"{key} {spread(list(m))}" for key, m in means.items())
             print(f"{count} training parts, {label}: {text} ({len(found)} seeds)")
         flagged = [sum(part["novelty_ratio"] > 1.0 for part in row["parts"].values()) for row in found]
         print(f"  PIPE's extrapolation warning flags {', '.join(map(str, flagged))} of the {len(every)} parts by seed")

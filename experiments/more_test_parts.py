@@ -13,12 +13,12 @@ Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
-import json
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 from common import append_row, kept_folder, results, with_extra_parts
+from summarise import read_rows, spread
 
 from pipe.pipeline import latent_codes
 
@@ -39,8 +39,7 @@ def summary(rows_file: str) -> None:
     test parts, the extra parts and all of them, and the share of the gap from `nearest` to the oracle that
     PIPE closes."""
     groups = defaultdict(list)
-    for line in Path(rows_file).read_text().splitlines():
-        row = json.loads(line)
+    for row in read_rows(rows_file):
         family = next(iter(row["fit_F"]["pipe"])).rsplit("_", 1)[0]
         groups[family, row["train_parts"]].append(row)
     for (family, count), rows in sorted(groups.items()):
@@ -52,8 +51,7 @@ def summary(rows_file: str) -> None:
         for label, parts in subsets.items():
             means = {name: np.array([np.mean([row["fit_F"][name][p] for p in parts]) for row in rows])
                      for name in methods}
-            text = ", ".join(f"{name} {m.mean():.2f} ± {m.std(ddof=1) if len(m) > 1 else 0.0:.2f}"
-                             for name, m in means.items())
+            text = ", ".join(f"{name} {spread(list(m))}" for name, m in means.items())
             gap = means["oracle"].mean() - means["nearest"].mean()
             share = (means["pipe"].mean() - means["nearest"].mean()) / gap
             print(f"{family} {count} parts, {label}: {text}; PIPE closes {100 * share:.1f} % of the gap "

@@ -13,13 +13,13 @@ Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 from candidate_ensemble import part_fits
 from common import append_row, two_candidates, with_extra_parts
+from summarise import read_rows
 
 from pipe.data.batches import trial_loader
 from pipe.evaluation.context import EvalContext
@@ -72,8 +72,7 @@ def summary(rows_file: str) -> None:
     """Per run: the weight it kept, and the margins (heavier weight minus lighter) on its own validation parts,
     on the extra parts and on all of them (loss: lower is better, so a negative margin keeps the heavier weight;
     FIT(F): a positive one)."""
-    for line in Path(rows_file).read_text().splitlines():
-        row = json.loads(line)
+    for row in read_rows(rows_file):
         lighter, heavier = weights(row)
         every = list(row[f"{CANDIDATE_PREFIX}{lighter:g}"]["loss"])
         own = [p for p in every if p not in row["extra"]]
