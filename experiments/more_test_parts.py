@@ -6,9 +6,11 @@ identification is the run's own (its settings and its cache of fits, so the 20 t
 not fitted again), and so are gpr's fits of the training parts. One JSON line per run: each method's FIT(F)
 per part (PIPE, `nearest` and the oracle are needed for the share of the gap). Results: docs/experiments.md,
 "The curve's verdict on 40 more held-out parts".
+The summary reads each run's parts by the paper's mean FIT(F) or, to see whether a few parts decide it, by their
+median or lower decile (`--statistic`), and counts the parts on which PIPE scores above each method (`--paired`).
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/more_test_parts.py OUT.jsonl DATASET runs/rect/seed_0 ...
-  python experiments/more_test_parts.py OUT.jsonl --summary
+  python experiments/more_test_parts.py OUT.jsonl --summary [--statistic median] [--paired]
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from summarise import read_rows, spread
 from pipe.pipeline import latent_codes
 
 METHODS = ["pipe", "nearest", "oracle", "gpr", "blackbox"]
+STATISTICS = {"mean": np.mean, "median": np.median, "decile": lambda values: np.percentile(values, 10)}
 
 
 def scores(run: Path, dataset: Path, methods: list[str]) -> dict:
@@ -34,10 +37,12 @@ def scores(run: Path, dataset: Path, methods: list[str]) -> dict:
                       for name, result in found.items()}}
 
 
-def summary(rows_file: str) -> None:
-    """Per family and number of training parts: each method's FIT(F), mean ± std over the seeds, on the 20
-    test parts, the extra parts and all of them, and the share of the gap from `nearest` to the oracle that
-    PIPE closes."""
+def summary(rows_file: str, statistic: str = "mean", paired: bool = False) -> None:
+    """Per family and number of training parts: each method's FIT(F) over a run's parts by `statistic` (the
+    paper's mean, the median or the lower decile), mean ± std over the seeds, on the 20 test parts, the extra
+    parts and all of them, and the share of the gap from `nearest` to the oracle that PIPE closes; with
+    `paired`, on how many of those parts PIPE scores above each other method, seed by seed."""
+    over_parts = STATISTICS[statistic]
     groups = defaultdict(list)
     for row in read_rows(rows_file):
         family = next(iter(row["fit_F"]["pipe"])).rsplit("_", 1)[0]
@@ -49,13 +54,20 @@ def summary(rows_file: str) -> None:
         subsets = {f"test {len(every) - len(extra)}": [p for p in every if p not in extra],
                    f"extra {len(extra)}": extra, f"all {len(every)}": every}
         for label, parts in subsets.items():
-            means = {name: np.array([np.mean([row["fit_F"][name][p] for p in parts]) for row in rows])
+            if not parts:
+                continue
+            means = {name: np.array([over_parts([row["fit_F"][name][p] for p in parts]) for row in rows])
                      for name in methods}
             text = ", ".join(f"{name} {spread(list(m))}" for name, m in means.items())
             gap = means["oracle"].mean() - means["nearest"].mean()
             share = (means["pipe"].mean() - means["nearest"].mean()) / gap
             print(f"{family} {count} parts, {label}: {text}; PIPE closes {100 * share:.1f} % of the gap "
                   f"(mark {means['nearest'].mean() + gap / 2:.2f}; {len(rows)} seeds)")
+            if paired:
+                above = {name: "/".join(str(sum(row["fit_F"]["pipe"][p] > row["fit_F"][name][p] for p in parts))
+                                        for row in rows) for name in methods if name != "pipe"}
+                print(f"  PIPE above it on {', '.join(f'{name} {n}' for name, n in above.items())} "
+                      f"of {len(parts)} parts (seed by seed)")
 
 
 def main() -> None:
@@ -66,9 +78,13 @@ def main() -> None:
     ap.add_argument("--methods", default="pipe,nearest,oracle,gpr,blackbox",
                     help="comma-separated methods to score (pipe, nearest and oracle at least)")
     ap.add_argument("--summary", action="store_true", help="print the table per family and size")
+    ap.add_argument("--statistic", choices=sorted(STATISTICS), default="mean",
+                    help="the summary's FIT(F) over a run's parts: the paper's mean, the median or the lower decile")
+    ap.add_argument("--paired", action="store_true",
+                    help="the summary also counts the parts on which PIPE scores above each method")
     args = ap.parse_args()
     if args.summary:
-        summary(args.out)
+        summary(args.out, args.statistic, args.paired)
         return
     for run in args.runs:
         append_row(args.out, scores(Path(run), Path(args.dataset), args.methods.split(",")))

@@ -568,6 +568,26 @@ def test_more_test_parts_summary_gives_each_subset_over_the_seeds_and_the_share_
     assert lines[2].startswith("rect 100 parts, all 2: pipe 61.00 ± 1.41")
 
 
+def test_more_test_parts_summary_by_median_and_lower_decile_and_the_parts_pipe_wins(tmp_path):
+    """Hand-computed, one seed, three test parts: PIPE 10, 70 and 80, `nearest` 60, 60 and 90, the oracle 80, 80
+    and 100. Medians 70, 60 and 80: PIPE closes (70 - 60) / (80 - 60) = 50 % of the gap, the mark 70. Lower
+    deciles (linear between the sorted values, at 0.2 of the first step): 22, 60 and 80, -190 %. PIPE is above
+    `nearest` on one part (70 > 60) and above the oracle on none. No extra parts: no line for them."""
+    row = {"run": "r", "train_parts": 100, "extra": [],
+           "fit_F": {"pipe": {"pins_0000": 10.0, "pins_0001": 70.0, "pins_0002": 80.0},
+                     "nearest": {"pins_0000": 60.0, "pins_0001": 60.0, "pins_0002": 90.0},
+                     "oracle": {"pins_0000": 80.0, "pins_0001": 80.0, "pins_0002": 100.0}}}
+    median = printed_table("more_test_parts.py", [row], tmp_path, "--summary", "--statistic", "median",
+                           "--paired").splitlines()
+    assert median[0] == ("pins 100 parts, test 3: pipe 70.00 ± 0.00, nearest 60.00 ± 0.00, oracle 80.00 ± 0.00; "
+                         "PIPE closes 50.0 % of the gap (mark 70.00; 1 seeds)")
+    assert median[1] == "  PIPE above it on nearest 1, oracle 0 of 3 parts (seed by seed)"
+    assert median[2].startswith("pins 100 parts, all 3: pipe 70.00 ± 0.00") and len(median) == 4
+    decile = printed_table("more_test_parts.py", [row], tmp_path, "--summary", "--statistic", "decile")
+    assert decile.splitlines()[0] == ("pins 100 parts, test 3: pipe 22.00 ± 0.00, nearest 60.00 ± 0.00, oracle "
+                                      "80.00 ± 0.00; PIPE closes -190.0 % of the gap (mark 70.00; 1 seeds)")
+
+
 def test_validation_size_summary_gives_the_margins_on_the_own_the_extra_and_all_parts(tmp_path):
     """Hand-computed: loss differences (weight 1000 minus 0) of 0.1 and 0.3 on the own parts (mean 0.2,
     standard error 0.1: keeps 0), -0.2 and -0.4 on the extra ones (mean -0.3: keeps 1000), all four mean -0.05,
