@@ -15,6 +15,7 @@ Usage (one thread, as the results were measured):
 from __future__ import annotations
 
 import argparse
+import copy
 from collections import defaultdict
 from pathlib import Path
 
@@ -47,10 +48,8 @@ def rows(run: Path, dataset: Path) -> dict:
     names = column_names(ctx, blackbox.inputs)
     seen = torch.cat([blackbox._inputs(ctx, part, p.depth) for part in ctx.train for p in part.profiles])
     low, high = seen.amin(0), seen.amax(0)
-    clipped = methods.METHODS["blackbox"]()
-    clipped.__dict__.update(blackbox.__dict__)
-    clipped._inputs = lambda c, part, depth: torch.maximum(torch.minimum(
-        blackbox._inputs(c, part, depth), high), low)
+    clipped = copy.copy(blackbox)
+    clipped.bounds = (low, high)      # as evaluation.blackbox_clip=true clips, on the network fitted without it
     test = data.splits["test"]
     reference = torch.stack([ctx.latent(part) for part in ctx.train])
     novelties = novelty(torch.stack([ctx.latent(part) for part in test]), reference, [p.name for p in ctx.train])

@@ -370,6 +370,29 @@ def test_blackbox_learns_a_static_map(ctx):
     np.testing.assert_allclose(static, [2.0, 4.0, 6.0], atol=0.6)     # part a: F = 1 N/mm * p (static)
 
 
+def test_blackbox_clip_holds_its_inputs_to_the_training_range_and_changes_nothing_inside_it(ctx):
+    """The training codes are all 0 and all 1, the depths 0 to 6 mm. A test part whose code lies at 5 is
+    predicted, clipped, as the training part whose code is all 1 (the same depths), and a depth of 12 mm as 6
+    mm; unclipped the network extrapolates to other values. The network is the same either way (no
+    validation parts: the same steps from the same seed), so the training parts' forces are equal to the bit."""
+    context, test = ctx
+    context.settings["blackbox_steps"] = 200
+    context.latents[context.index["t"]] = 5.0
+    plain = METHODS["blackbox"]()
+    plain.fit(context)
+    context.settings["blackbox_clip"] = True
+    clipped = METHODS["blackbox"]()
+    clipped.fit(context)
+    a, b = context.train
+    for part in (a, b):
+        np.testing.assert_array_equal(clipped.predict(context, part)[0], plain.predict(context, part)[0])
+    np.testing.assert_array_equal(clipped.predict(context, test)[0], plain.predict(context, b)[0])
+    assert np.abs(plain.predict(context, test)[0] - plain.predict(context, b)[0]).max() > 0.1
+    deep = clipped.static_force(context, a, 6.0, np.array([6.0, 12.0]))
+    assert deep[1] == pytest.approx(deep[0], rel=1e-6)       # the same input (float32 rounding of the batch)
+    assert plain.static_force(context, a, 6.0, np.array([12.0]))[0] != deep[1]
+
+
 def test_blackbox_does_not_depend_on_what_the_process_drew_before(ctx):
     """Its initial weights come from the run's seed: an evaluation after a training in the same process
     and one in a process of its own (phase=evaluate) fit the same network; another seed, another network."""

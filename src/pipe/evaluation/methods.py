@@ -381,7 +381,10 @@ class BlackBox(CodeBaseline):
     """An MLP f(z, p_z) -> F trained on every sample of the training trials (MSE); no dynamics, no physics.
     Its inputs are standardised (the encoder's code by the training parts' mean and std, the rest as the model
     standardised it, `standardised_already`; depth and force by their scales), and it keeps the weights of its
-    lowest validation error, checked every `CHECK_EVERY` steps."""
+    lowest validation error, checked every `CHECK_EVERY` steps. With `blackbox_clip` each input is clipped to
+    the range the training samples span, so that on a part unlike every training part the MLP does not
+    extrapolate in a straight line (docs/experiments.md, "Why the blackbox collapses on a few held-out parts");
+    inside that range it changes nothing."""
 
     name = "blackbox"
     CHECK_EVERY = 100
@@ -397,7 +400,10 @@ class BlackBox(CodeBaseline):
             torch.manual_seed(ctx.seed)            # process drew before (a training in this process, or none)
             self.net = nn.Sequential(nn.Linear(codes.shape[1] + 1, 128), nn.ReLU(), nn.Linear(128, 128), nn.ReLU(),
                                      nn.Linear(128, 128), nn.ReLU(), nn.Linear(128, 1))
+        self.bounds = None
         inputs = torch.cat([self._inputs(ctx, part, p.depth) for part in ctx.train for p in part.profiles])
+        if ctx.settings.get("blackbox_clip", False):
+            self.bounds = (inputs.amin(0), inputs.amax(0))
         force = torch.cat([torch.as_tensor(p.force, dtype=torch.float32) for part in ctx.train
                            for p in part.profiles])
         generator = torch.Generator().manual_seed(ctx.seed)
@@ -422,7 +428,8 @@ class BlackBox(CodeBaseline):
     def _inputs(self, ctx: EvalContext, part: PartData, depth: np.ndarray) -> torch.Tensor:
         p = torch.as_tensor(depth, dtype=torch.float32)
         code = (self.code(ctx, part) - self.code_mean) / self.code_std
-        return torch.cat([code.expand(len(p), -1), (p / self.scales[1])[:, None]], 1)
+        inputs = torch.cat([code.expand(len(p), -1), (p / self.scales[1])[:, None]], 1)
+        return inputs if self.bounds is None else inputs.clamp(*self.bounds)
 
     @torch.no_grad()
     def _force(self, ctx: EvalContext, part: PartData, depth: np.ndarray) -> np.ndarray:
