@@ -56,13 +56,13 @@ def summary(rows_file: str, statistic: str = "mean", paired: bool = False) -> No
         for label, parts in subsets.items():
             if not parts:
                 continue
-            means = {name: np.array([over_parts([row["fit_F"][name][p] for p in parts]) for row in rows])
-                     for name in methods}
-            text = ", ".join(f"{name} {spread(list(m))}" for name, m in means.items())
-            gap = means["oracle"].mean() - means["nearest"].mean()
-            share = (means["pipe"].mean() - means["nearest"].mean()) / gap
+            per_run = {name: np.array([over_parts([row["fit_F"][name][p] for p in parts]) for row in rows])
+                       for name in methods}
+            text = ", ".join(f"{name} {spread(list(m))}" for name, m in per_run.items())
+            gap = per_run["oracle"].mean() - per_run["nearest"].mean()
+            share = (per_run["pipe"].mean() - per_run["nearest"].mean()) / gap
             print(f"{family} {count} parts, {label}: {text}; PIPE closes {100 * share:.1f} % of the gap "
-                  f"(mark {means['nearest'].mean() + gap / 2:.2f}; {len(rows)} seeds)")
+                  f"(mark {per_run['nearest'].mean() + gap / 2:.2f}; {len(rows)} seeds)")
             if paired:
                 above = {name: "/".join(str(sum(row["fit_F"]["pipe"][p] > row["fit_F"][name][p] for p in parts))
                                         for row in rows) for name in methods if name != "pipe"}

@@ -384,7 +384,8 @@ class BlackBox(CodeBaseline):
     lowest validation error, checked every `CHECK_EVERY` steps. With `blackbox_clip` each input is clipped to
     the range the training samples span, so that on a part unlike every training part the MLP does not
     extrapolate in a straight line (docs/experiments.md, "Why the blackbox collapses on a few held-out parts");
-    inside that range it changes nothing."""
+    an input inside that range is left as it is (the validation parts, clipped too, may still keep another
+    step or input)."""
 
     name = "blackbox"
     CHECK_EVERY = 100
