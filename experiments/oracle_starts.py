@@ -80,10 +80,11 @@ def main() -> None:
                 trials = [Profile(p.time, p.depth, getattr(p, target)) for p in part.profiles]
                 jobs = part_jobs(ctx, part.name, trials, settings)
                 starts[part.name] = list(zip(jobs, fit_jobs(jobs, 1)))
+            per_start = len(jobs) // args.starts       # two jobs a start with via_mse (part_jobs)
             for k in range(1, args.starts + 1):
                 kept = {}
                 for name, fitted in starts.items():
-                    job, (state, fit) = min(fitted[:k], key=lambda start: start[1][1].objective)
+                    job, (state, fit) = min(fitted[:k * per_start], key=lambda start: start[1][1].objective)
                     job.head.load_state_dict(state)
                     kept[name] = (Identified(ctx.model.with_head(job.head, job.model.theta_scale), fit.loss,
                                              fit.evaluations, fit.converged), fit.objective)

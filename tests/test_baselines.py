@@ -124,6 +124,25 @@ def test_oracle_clean_fits_the_noise_free_force_and_is_scored_against_it(ctx):
     assert clean_fit.loss < 1e-3 < 0.8 < identify(context, [noisy])[0].loss   # noise variance 1 N^2
 
 
+@pytest.mark.parametrize("engine", ["torch", "compiled"])
+@pytest.mark.parametrize("loss, k", [("mse", 1.6), ("nmse", (4 + 1 / 4) / (4 + 1 / 16))])
+def test_the_oracle_fits_every_trial_alike_under_nmse(ctx, engine, loss, k):
+    """Regression (the oracle below PIPE on some pins): four trials of static gain 1 and one of 4, which no
+    one profile fits. Each trial's force is its gain g times one response f, so the best profile predicts
+    k f, with k the mean of the gains weighted by each trial's weight: 1.6 under the pooled MSE (the objective
+    until 2026-11-30), (4 + 1/4) / (4 + 1/16) under each trial's error over its force's variance. A trial's
+    FIT(F) is then 1 - r (k - g)^2 / g^2, with r = |f|^2 / |f - mean f|^2: -54 % and 53 % here."""
+    context, _ = ctx
+    four, one = part("m", 1.0, trials=4), part("m", 4.0, trials=1)
+    mixed = PartData("m", four.cloud, four.profiles + one.profiles, four.static_curves + one.static_curves)
+    context.index["m"] = 2
+    context.settings["identification"] |= {"ridge": 0.0, "engine": engine, "loss": loss}
+    f = four.profiles[0].force
+    r = np.sum(f ** 2) / np.sum((f - f.mean()) ** 2)
+    expected = 100 * np.mean([1 - r * (k - g) ** 2 / g ** 2 for g in (1.0, 1.0, 1.0, 1.0, 4.0)])
+    assert evaluate_methods(context, [mixed], ["oracle"])["oracle"].domain["fit_F"] == pytest.approx(expected, abs=0.1)
+
+
 def test_oracle_clean_is_left_out_without_a_noise_free_force(ctx):
     context, test = ctx
     test.profiles[:] = [Profile(p.time, p.depth, p.force) for p in test.profiles]
@@ -134,7 +153,8 @@ def test_oracle_clean_is_left_out_without_a_noise_free_force(ctx):
 @pytest.mark.parametrize("engine", ["torch", "compiled"])
 def test_identification_stops_at_max_evaluations_and_reports_it(ctx, engine):
     context, test = ctx
-    context.settings["identification"] |= {"max_evaluations": 7, "restarts": 1, "engine": engine}
+    context.settings["identification"] |= {"max_evaluations": 7, "restarts": 1, "engine": engine,
+                                           "via_mse": False}
     fitted = identify(context, [test])[0]
     assert fitted.evaluations == 7 and not fitted.converged
     assert fitted.loss == pytest.approx(
@@ -149,6 +169,46 @@ def test_unknown_identification_option_is_refused(ctx):
         identify(context, [test])
 
 
+def test_an_unknown_identification_loss_is_refused(ctx):
+    context, test = ctx
+    context.settings["identification"]["loss"] = "mae"
+    with pytest.raises(PipeError, match=r"loss 'mae'; known: \['mse', 'nmse'\]"):
+        identify(context, [test])
+
+
+def test_via_mse_continues_each_start_from_its_mse_fit_and_keeps_the_lowest_objective(ctx):
+    """With via_mse each start has a second job: fitted on mse, then continued on nmse from there, the same
+    fit to the bit as doing the two by hand, with both fits' evaluations; the part keeps the job of lowest
+    objective among all of them."""
+    context, test = ctx
+    settings = identification.IdentificationSettings(restarts=2, max_evaluations=40)
+    trials = [Profile(p.time, p.depth, p.force) for p in test.profiles]
+    jobs = identification.part_jobs(context, test.name, trials, settings)
+    assert [job.first for job in jobs] == [None, "mse", None, "mse"]
+    assert len(identification.part_jobs(context, test.name, trials, replace(settings, via_mse=False))) == 2
+    assert len(identification.part_jobs(context, test.name, trials, replace(settings, loss="mse"))) == 2
+    state, fit = identification.fit_job(jobs[3])
+    by_hand = identification.part_jobs(context, test.name, trials, settings)[3]
+    warm = identification.fit_start(by_hand.model, by_hand.head, by_hand.batch, replace(settings, loss="mse"))
+    by_hand.head.train().requires_grad_(True)
+    then = identification.fit_start(by_hand.model, by_hand.head, by_hand.batch, settings)
+    assert fit == then._replace(evaluations=warm.evaluations + then.evaluations)
+    assert all(torch.equal(state[k], v) for k, v in by_hand.head.state_dict().items())
+    fits = [identification.fit_job(job)[1] for job in identification.part_jobs(context, test.name, trials, settings)]
+    context.settings["identification"] |= {"restarts": 2, "max_evaluations": 40}
+    kept = identify(context, [test])[0]
+    assert kept.loss == min(fits, key=lambda f: f.objective).loss
+
+
+def test_a_constant_force_trial_is_refused_under_nmse_naming_its_part(ctx):
+    context, test = ctx
+    test.profiles[1] = Profile(TIME, DEPTH, np.full(len(TIME), 2.0))
+    with pytest.raises(PipeError, match="a trial of t has a constant force: use evaluation.identification.loss=mse"):
+        identify(context, [test])
+    context.settings["identification"] |= {"loss": "mse", "max_evaluations": 5, "restarts": 1}
+    assert identify(context, [test])[0].evaluations == 5
+
+
 def test_an_unknown_identification_engine_is_refused(ctx):
     context, test = ctx
     context.settings["identification"]["engine"] = "jax"
@@ -160,7 +220,7 @@ def test_the_compiled_engine_fits_on_torch_where_the_head_offers_no_compiled_for
     """A head without `compiled` (a plugin that does not write one) is fitted by the torch engine, the same
     fit to the bit as engine=torch."""
     context, test = ctx
-    context.settings["identification"] |= {"max_evaluations": 30, "restarts": 1, "engine": "torch"}
+    context.settings["identification"] |= {"max_evaluations": 30, "restarts": 1, "engine": "torch", "via_mse": False}
     on_torch = identify(context, [test])[0]
     context.cache.clear()
     context.settings["identification"]["engine"] = "compiled"
@@ -225,7 +285,7 @@ class KillsItsWorker:
 def test_a_worker_process_that_dies_fails_the_fit_clearly_and_the_next_fit_works(ctx):
     """A killed worker used to leave the evaluation waiting for ever (multiprocessing.Pool loses its task)."""
     context, test = ctx
-    settings = identification.IdentificationSettings(restarts=2, max_evaluations=10)
+    settings = identification.IdentificationSettings(restarts=2, max_evaluations=10, via_mse=False)
     trials = [Profile(p.time, p.depth, p.force) for p in test.profiles]
     jobs = identification.part_jobs(context, test.name, trials, settings)
     doomed = [jobs[0], jobs[1]._replace(head=KillsItsWorker())]
@@ -239,7 +299,7 @@ def test_a_daemon_process_fits_its_starts_itself(ctx, monkeypatch):
     """Python forbids a daemon process to start processes (AssertionError "daemonic processes are not allowed
     to have children"): there the starts are fitted in the process itself, whatever `workers` says."""
     context, test = ctx
-    context.settings["identification"] |= {"max_evaluations": 20, "workers": 2}
+    context.settings["identification"] |= {"max_evaluations": 20, "workers": 2, "via_mse": False}
 
     class Daemon:
         daemon = True

@@ -12,7 +12,7 @@ from pipe.data.preprocess import Profile
 from pipe.evaluation.compiled_objective import CompiledObjective
 from pipe.evaluation.identification import IdentificationSettings, fit_start, start_head
 from pipe.model import ltv
-from pipe.model.losses import masked_mse
+from pipe.model.losses import FORCE_LOSSES
 from pipe.model.pipe_model import PIPEModel
 from pipe.plugins.head.gaussian import GaussianHead
 from pipe.plugins.head.gaussian_kernels import EXP_FLOOR, _exp_nonpositive
@@ -34,37 +34,41 @@ def trials(lengths: tuple[int, ...]) -> list[Profile]:
     return out
 
 
-def torch_objective(model: PIPEModel, head, batch, ridge: float) -> tuple[float, np.ndarray]:
-    """`fit_start`'s torch objective in float64 on the torch simulator, and its gradient by autograd."""
+def torch_objective(model: PIPEModel, head, batch, ridge: float, loss: str = "mse") -> tuple[float, np.ndarray]:
+    """`fit_start`'s objective in float64 on the torch simulator, its force error stage 2's loss of the same
+    name, and its gradient by autograd."""
     head = head.double().requires_grad_(True)
     head.structure[0].double()
     joint = model.with_head(head, model.theta_scale.double())
     joint.theta_scale = joint.theta_scale.double()
     z = torch.zeros(len(batch.part), head.latent_dim, dtype=torch.float64)
     force = batch.force.double()
-    mse = masked_mse(joint(z, batch.depth.double(), batch.dt), force, batch.mask)
+    error = FORCE_LOSSES[loss](joint(z, batch.depth.double(), batch.dt), force, batch.mask)
+    power = FORCE_LOSSES[loss](torch.zeros_like(force), force, batch.mask)    # the error of predicting nothing
     values = torch.cat([p.reshape(-1) for p in head.parameters()])
-    objective = torch.log(mse + 1e-6 * force[batch.mask].pow(2).mean()) + ridge * values.pow(2).mean()
+    objective = torch.log(error + 1e-6 * power) + ridge * values.pow(2).mean()
     objective.backward()
     return float(objective.detach()), torch.cat([p.grad.reshape(-1) for p in head.parameters()]).numpy()
 
 
+@pytest.mark.parametrize("loss", ["mse", "nmse"])
 @pytest.mark.parametrize("dynamics", [MDS2(), MDS1()], ids=["mds2", "mds1"])
 @pytest.mark.parametrize("start", [0, 1, 2])
-def test_the_compiled_objective_and_gradient_equal_autograds_in_float64(dynamics, start):
-    """Objective and gradient of the neutral and two random starts, on trials of different lengths: within
-    1e-10 of the torch objective's value and of autograd's gradient (relative to its largest entry)."""
+def test_the_compiled_objective_and_gradient_equal_autograds_in_float64(dynamics, start, loss):
+    """Objective and gradient of the neutral and two random starts, on trials of different lengths, under
+    both force errors: within 1e-10 of the torch objective's value and of autograd's gradient (relative to its
+    largest entry)."""
     head = GaussianHead(8, len(dynamics.parameter_names), num_local_models=6)
     free = start_head(head, "part", seed=3, start=start)
     batch = collate_trials([(0, p) for p in trials((150, 200, 90))])
     model = PIPEModel(None, head, dynamics, force_scale=12.0, depth_scale=4.0)
     values = torch.cat([p.detach().reshape(-1) for p in free.parameters()]).double().numpy()
-    objective = CompiledObjective.of(model, free, batch, ridge=0.1)
+    objective = CompiledObjective.of(model, free, batch, ridge=0.1, loss=loss)
     value, mse, gradient = objective(values)
     previous = ltv.get_backend()
     ltv.set_backend("torch")
     try:
-        expected_value, expected_gradient = torch_objective(model, free, batch, ridge=0.1)
+        expected_value, expected_gradient = torch_objective(model, free, batch, ridge=0.1, loss=loss)
     finally:
         ltv.set_backend(previous)
     assert value == pytest.approx(expected_value, rel=1e-10)

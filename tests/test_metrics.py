@@ -57,3 +57,24 @@ def test_stage_two_normalised_loss_is_one_minus_fit_per_trial():
     assert float(masked_normalised_mse(predicted, force, mask)) == pytest.approx((1 / 2 + 100 / 200) / 2)
     fits = [fit_percent(force[k][mask[k]].numpy(), predicted[k][mask[k]].numpy()) for k in range(2)]
     assert float(masked_normalised_mse(predicted, force, mask)) == pytest.approx(1 - np.mean(fits) / 100)
+
+
+def test_trial_weights_give_each_force_loss_as_a_weighted_sum_of_squared_errors():
+    """The identification's per-trial weights (`trial_weights`): on the trials above, 1/5 each under mse (five
+    real samples) and 1 / (2 x 2), 1 / (2 x 200) under nmse; their weighted squared errors are the losses."""
+    import torch
+
+    from pipe.evaluation.force_error import trial_weights
+    from pipe.model.losses import FORCE_LOSSES
+
+    force = torch.tensor([[1.0, 3.0, 3.0], [10.0, 20.0, 30.0]])
+    mask = torch.tensor([[True, True, False], [True, True, True]])
+    predicted = torch.tensor([[2.0, 3.0, 9.0], [10.0, 20.0, 20.0]])
+    expected = {"mse": [1 / 5, 1 / 5], "nmse": [1 / 4, 1 / 400]}
+    for loss, weights in expected.items():
+        computed = trial_weights(force, mask, loss)
+        np.testing.assert_allclose(computed.numpy(), weights, rtol=1e-6)
+        squared = torch.where(mask, predicted - force, 0.0).pow(2).sum(1)
+        assert float((computed * squared).sum()) == pytest.approx(float(FORCE_LOSSES[loss](predicted, force, mask)))
+    with pytest.raises(ValueError, match="unknown force loss 'mae'"):
+        trial_weights(force, mask, "mae")
