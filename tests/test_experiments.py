@@ -1430,3 +1430,25 @@ def test_extrapolation_rows_match_part_cv_on_the_same_folds(trained_run, tmp_pat
     assert forces["part"] == "vga" and forces["measured"]["peak"] > 0
     assert forces["pipe"]["fit"] == pytest.approx(cv["vga"]["fit"], abs=1e-9)
     assert forces["nearest"]["fit"] == pytest.approx(cv["vga"]["nearest"], abs=1e-9)
+
+
+def test_oracle_loss_table_gives_the_share_of_the_gap_to_each_oracle_and_where_pipe_is_above_it(tmp_path):
+    """Hand-computed, two seeds, one part: PIPE 70 and 74 (72 ± 2.83), `nearest` 60; the curve's own oracle 80
+    closes (72 - 60) / (80 - 60) = 60 % of the gap, and PIPE is above it in no seed; the refitted oracle 90 and
+    96 (93 ± 4.24) closes 12 / 33 = 36.4 %."""
+    curve = tmp_path / "curve.jsonl"
+    curve.write_text("".join(json.dumps({
+        "run": f"runs/curve/rect/train_100/seed_{seed}", "train_parts": 100, "extra": [],
+        "fit_F": {"pipe": {"rect_0000": pipe}, "nearest": {"rect_0000": 60.0}, "oracle": {"rect_0000": 80.0}}})
+        + "\n" for seed, pipe in ((0, 70.0), (1, 74.0))))
+    rows = [{"family": "rect", "seed": seed, "identification": "nmse_via_mse", "target": "force", "extra": [],
+             "fit_F": oracle, "parts": {"rect_0000": oracle}} for seed, oracle in ((0, 90.0), (1, 96.0))]
+    printed = printed_table("oracle_loss.py", rows, tmp_path, "--table", "--curve", str(curve))
+    spread = statistics.stdev([90.0, 96.0])
+    assert f"| rect | force | nmse_via_mse | 93.00 ± {spread:.2f} (2 seeds) |" in printed
+    assert ("| rect | test 20 | 100 | 72.00 ± 2.83 | 60.00 ± 0.00 | 80.00 ± 0.00 (mse, the curve's runs) | 60.0 % "
+            "| 0/0 |") in printed
+    assert f"| 93.00 ± {spread:.2f} (nmse_via_mse) | 36.4 % | 0/0 |" in printed
+    parts = printed_table("oracle_loss.py", rows, tmp_path, "--table", "--curve", str(curve), "--parts",
+                          "rect_0000", "--seeds", "1")
+    assert "| rect_0000 | 80.00 | 96.00 |" in parts

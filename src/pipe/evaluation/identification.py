@@ -39,8 +39,8 @@ folder (`pipe.evaluation.fit_cache`).
 With `via_mse` (the default) and a loss other than mse, every start is fitted twice: directly on `loss`, and on
 the pooled MSE first, then continued on `loss` from where that fit ended. The two objectives lead the same
 start into different basins, and neither path finds the deepest alone: on a rect plug every direct nmse start
-ended at 79 % FIT(F) and the continued neutral start at 95 %, while on another plug the direct path was the
-deeper by 3 points (docs/experiments.md, "The oracle fitted to what it is scored by").
+ended at 79 % FIT(F) and one start continued from its pooled fit at 95 %, while on another plug the direct
+path was the deeper by 3 points (docs/experiments.md, "The oracle fitted to what it is scored by").
 
 The starts are independent: `identify_all` fits every start of every part it is asked for at once, in
 `workers` processes (by default one per thread of the run). Each start runs on one thread wherever it runs,
