@@ -2,19 +2,18 @@
 fitted a part's pooled mean squared force error (`evaluation.identification.loss=mse`), while FIT(F) weighs
 each trial alike (its error over its own force's variance); on a pin whose one trial of ten varied 30 times
 more than the others that fit scored 15 % where PIPE, trained on each trial's normalised error, scored 55.
-This script identifies a generated family's curve test parts (and `--extra` parts after the curve's 130,
-which no run trains, validates or chooses on) by each `--identifications` entry (`mse`: the objective until
-2026-11-30; `nmse`: each trial's error over its force's variance, every start fitted on it directly;
-`nmse_via_mse`, the default since: each start also fitted on mse first and continued on nmse), seed by seed
-(the random starts are the seed's, as in the curve's runs), and scores the oracle on them: one JSON line per
-family, seed, target and identification with each part's FIT(F). `--table` summarises them; with `--curve
+This script identifies a generated family's 20 curve test parts by each `--identifications` entry (`mse`:
+the objective until 2026-11-30; `nmse`: each trial's error over its force's variance, every start fitted on
+it directly; `nmse_via_mse`, the default since: each start also fitted on mse first and continued on nmse),
+seed by seed (the random starts are the seed's, as in the curve's runs), and scores the oracle on them: one
+JSON line per family, seed, target and identification with each part's FIT(F). `--table` summarises them; with `--curve
 ROWS` (the committed rows of `experiments/more_test_parts.py`, which hold PIPE's and `nearest`'s FIT(F) per
 part of the curve's runs) it also gives, per number of training parts, the share of the gap from `nearest`
 to each oracle that PIPE closes and on how many parts PIPE scores above the oracle. Results:
 docs/experiments.md, "The oracle fitted to what it is scored by".
 Usage (two worker processes, one thread each):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/oracle_loss.py OUT.jsonl --family pins \
-      --seeds 0 1 2 --identifications nmse nmse_via_mse [--extra 40] [--targets force force_clean]
+      --seeds 0 1 2 --identifications nmse nmse_via_mse [--targets force force_clean]
   python experiments/oracle_loss.py OUT.jsonl --table [--curve docs/experiments/more_test_parts_pins.jsonl]
 """
 from __future__ import annotations
@@ -24,8 +23,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from common import append_row, extra_parts
-from omegaconf import open_dict
+from common import append_row
 from summarise import read_rows, spread
 from twin_oracle import family_config, identification_context
 
@@ -33,29 +31,17 @@ from pipe.evaluation.evaluate import evaluate_methods
 from pipe.model import ltv
 from pipe.pipeline import load_domain
 
-CURVE_PARTS = 130       # the curve's 20 test, 10 validation and up to 100 training parts (conf/domain/curve.yaml)
 ORACLES = {"force": "oracle", "force_clean": "oracle_clean"}
 IDENTIFICATIONS = {"mse": ["loss=mse"], "nmse": ["loss=nmse", "via_mse=false"],
                    "nmse_via_mse": ["loss=nmse", "via_mse=true"]}
 
 
-def config(family: str, seed: int, identification: str, extra: int):
-    """The learning curve's config for `family` with the identification `identification` (IDENTIFICATIONS),
-    its test split extended by the `extra` parts generated after the curve's."""
-    cfg = family_config(family, seed, [*[f"evaluation.identification.{o}" for o in IDENTIFICATIONS[identification]],
-                                       f"data.generate.count={CURVE_PARTS + extra}"])
-    if extra:
-        with open_dict(cfg):
-            added = [f"{family}_{k:04d}" for k in range(CURVE_PARTS, CURVE_PARTS + extra)]
-            cfg.domain.test = [*cfg.domain.test, *added]
-    return cfg
-
-
 def identify_rows(out: str, family: str, seeds: list[int], identifications: list[str], targets: list[str],
-                  extra: int, workers: int) -> None:
+                  workers: int) -> None:
     for identification in identifications:
         for seed in seeds:
-            cfg = config(family, seed, identification, extra)
+            overrides = [f"evaluation.identification.{o}" for o in IDENTIFICATIONS[identification]]
+            cfg = family_config(family, seed, overrides)
             ltv.set_backend(cfg.simulator)
             data = load_domain(cfg)
             test = data.splits["test"]
@@ -64,7 +50,6 @@ def identify_rows(out: str, family: str, seeds: list[int], identifications: list
             for target in targets:
                 result = found[ORACLES[target]]
                 row = {"family": family, "seed": seed, "identification": identification, "target": target,
-                       "extra": extra_parts(Path(cfg.data.dir), family, CURVE_PARTS),
                        "fit_F": result.domain["fit_F"], "parts": {p: m["fit_F"] for p, m in result.per_part.items()},
                        "id_loss": {p: m["id_loss"] for p, m in result.per_part.items()}}
                 append_row(out, row)
@@ -72,21 +57,16 @@ def identify_rows(out: str, family: str, seeds: list[int], identifications: list
 
 
 def table(rows: list[dict], curve_rows: list[dict]) -> str:
-    """Per family, target and identification: the oracle's FIT(F) on the test parts (and on all identified parts), mean
-    ± std over the seeds; with the curve's rows, per size: PIPE, `nearest`, the share of the gap to each
-    oracle that PIPE closes, and on how many parts PIPE is above that oracle (seed by seed)."""
+    """Per family, target and identification: the oracle's FIT(F) on the test parts, mean ± std over the
+    seeds; with the curve's rows, per size: PIPE, `nearest`, the share of the gap to each oracle that PIPE
+    closes, and on how many parts PIPE is above that oracle (seed by seed)."""
     oracles: dict[tuple[str, str, str], dict[int, dict[str, float]]] = defaultdict(dict)
     for row in rows:
         oracles[row["family"], row["target"], row["identification"]][row["seed"]] = row["parts"]
-    lines = ["| family | target | identification | oracle, 20 test parts | oracle, all parts identified |",
-             "| --- " * 5 + "|"]
+    lines = ["| family | target | identification | oracle, 20 test parts |", "| --- " * 4 + "|"]
     for (family, target, identification), by_seed in sorted(oracles.items()):
-        every = list(next(iter(by_seed.values())))
-        test = every[:20]
-        cells = [spread([float(np.mean([parts[p] for p in subset])) for parts in by_seed.values()])
-                 for subset in (test, every)]
-        lines.append(f"| {family} | {target} | {identification} | {cells[0]} ({len(by_seed)} seeds) | {cells[1]} "
-                     f"({len(every)} parts) |")
+        cell = spread([float(np.mean(list(parts.values()))) for parts in by_seed.values()])
+        lines.append(f"| {family} | {target} | {identification} | {cell} ({len(by_seed)} seeds) |")
     if curve_rows:
         lines += ["", curve_table(curve_rows, oracles)]
     return "\n".join(lines)
@@ -149,7 +129,6 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--identifications", nargs="+", choices=sorted(IDENTIFICATIONS), default=["nmse_via_mse"])
     ap.add_argument("--targets", nargs="+", choices=sorted(ORACLES), default=["force"])
-    ap.add_argument("--extra", type=int, default=0, help="parts generated after the curve's 130 to identify too")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--table", action="store_true", help="print the tables of the rows in OUT and stop")
     ap.add_argument("--curve", nargs="*", default=[], metavar="ROWS",
@@ -164,7 +143,7 @@ def main() -> None:
             return
         print(table(read_rows(args.out), curve_rows))
         return
-    identify_rows(args.out, args.family, args.seeds, args.identifications, args.targets, args.extra, args.workers)
+    identify_rows(args.out, args.family, args.seeds, args.identifications, args.targets, args.workers)
 
 
 if __name__ == "__main__":
