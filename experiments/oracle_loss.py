@@ -6,14 +6,17 @@ This script identifies a generated family's 20 curve test parts by each `--ident
 the objective until 2026-11-30; `nmse`: each trial's error over its force's variance, every start fitted on
 it directly; `nmse_via_mse`, the default since: each start also fitted on mse first and continued on nmse),
 seed by seed (the random starts are the seed's, as in the curve's runs), and scores the oracle on them: one
-JSON line per family, seed, target and identification with each part's FIT(F). `--table` summarises them; with `--curve
-ROWS` (the committed rows of `experiments/more_test_parts.py`, which hold PIPE's and `nearest`'s FIT(F) per
-part of the curve's runs) it also gives, per number of training parts, the share of the gap from `nearest`
-to each oracle that PIPE closes and on how many parts PIPE scores above the oracle. Results:
-docs/experiments.md, "The oracle fitted to what it is scored by".
+JSON line per family, seed, target and identification with each part's FIT(F). With `--dataset` (the family
+generated with more parts, `pipe data generate OUT --family F --count 170`) it identifies the parts after the
+curve's 130 instead, the 40 more held-out parts of `experiments/more_test_parts.py` (each start is drawn from
+the seed, the start and the part's name, so a part's fit does not depend on the parts beside it). `--table`
+summarises them; with `--curve ROWS` (the committed rows of `experiments/more_test_parts.py`, which hold
+PIPE's and `nearest`'s FIT(F) per part of the curve's runs) it also gives, per number of training parts, the
+share of the gap from `nearest` to each oracle that PIPE closes and on how many parts PIPE scores above the
+oracle. Results: docs/experiments.md, "The oracle fitted to what it is scored by".
 Usage (two worker processes, one thread each):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/oracle_loss.py OUT.jsonl --family pins \
-      --seeds 0 1 2 --identifications nmse nmse_via_mse [--targets force force_clean]
+      --seeds 0 1 2 --identifications nmse nmse_via_mse [--targets force force_clean] [--dataset DATASET_170]
   python experiments/oracle_loss.py OUT.jsonl --table [--curve docs/experiments/more_test_parts_pins.jsonl]
 """
 from __future__ import annotations
@@ -23,7 +26,8 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from common import append_row
+from common import append_row, extra_parts
+from omegaconf import DictConfig, open_dict
 from summarise import read_rows, spread
 from twin_oracle import family_config, identification_context
 
@@ -37,11 +41,15 @@ IDENTIFICATIONS = {"mse": ["loss=mse"], "nmse": ["loss=nmse", "via_mse=false"],
 
 
 def identify_rows(out: str, family: str, seeds: list[int], identifications: list[str], targets: list[str],
-                  workers: int) -> None:
+                  workers: int, dataset: Path | None = None) -> None:
+    """Each identification's oracle per seed on the family's 20 test parts, or on `dataset`'s parts after the
+    curve's (then as the test split, the curve's own test parts left out)."""
     for identification in identifications:
         for seed in seeds:
             overrides = [f"evaluation.identification.{o}" for o in IDENTIFICATIONS[identification]]
             cfg = family_config(family, seed, overrides)
+            if dataset is not None:
+                cfg = on_extra_parts(cfg, dataset)
             ltv.set_backend(cfg.simulator)
             data = load_domain(cfg)
             test = data.splits["test"]
@@ -50,10 +58,25 @@ def identify_rows(out: str, family: str, seeds: list[int], identifications: list
             for target in targets:
                 result = found[ORACLES[target]]
                 row = {"family": family, "seed": seed, "identification": identification, "target": target,
+                       "held_out": "test" if dataset is None else "extra",
                        "fit_F": result.domain["fit_F"], "parts": {p: m["fit_F"] for p, m in result.per_part.items()},
                        "id_loss": {p: m["id_loss"] for p, m in result.per_part.items()}}
                 append_row(out, row)
                 print(family, seed, identification, target, f"{row['fit_F']:.2f}", flush=True)
+
+
+def on_extra_parts(cfg: DictConfig, dataset: Path) -> DictConfig:
+    """The curve's config read on `dataset`, the family generated with more parts, whose parts after the
+    curve's are its test split instead of the curve's own test parts."""
+    family, used = cfg.domain.family, int(cfg.data.generate.count)
+    extra = extra_parts(dataset, family, used)
+    if not extra:
+        raise SystemExit(f"{dataset}: no {family} parts numbered from {used} on "
+                         f"(generate it with --count above {used})")
+    with open_dict(cfg):
+        cfg.data.dir, cfg.data.generate.count = str(dataset), used + len(extra)
+        cfg.domain.test = extra
+    return cfg
 
 
 def table(rows: list[dict], curve_rows: list[dict]) -> str:
@@ -61,12 +84,14 @@ def table(rows: list[dict], curve_rows: list[dict]) -> str:
     seeds; with the curve's rows, per size: PIPE, `nearest`, the share of the gap to each oracle that PIPE
     closes, and on how many parts PIPE is above that oracle (seed by seed)."""
     oracles: dict[tuple[str, str, str], dict[int, dict[str, float]]] = defaultdict(dict)
+    held: dict[tuple[str, str, str, str], list[float]] = defaultdict(list)
     for row in rows:
-        oracles[row["family"], row["target"], row["identification"]][row["seed"]] = row["parts"]
-    lines = ["| family | target | identification | oracle, 20 test parts |", "| --- " * 4 + "|"]
-    for (family, target, identification), by_seed in sorted(oracles.items()):
-        cell = spread([float(np.mean(list(parts.values()))) for parts in by_seed.values()])
-        lines.append(f"| {family} | {target} | {identification} | {cell} ({len(by_seed)} seeds) |")
+        oracles[row["family"], row["target"], row["identification"]].setdefault(row["seed"], {}).update(row["parts"])
+        parts = row.get("held_out", "test")
+        held[row["family"], row["target"], row["identification"], parts].append(row["fit_F"])
+    lines = ["| family | target | identification | held-out parts | oracle |", "| --- " * 5 + "|"]
+    for (family, target, identification, parts), fits in sorted(held.items()):
+        lines.append(f"| {family} | {target} | {identification} | {parts} | {spread(fits)} ({len(fits)} seeds) |")
     if curve_rows:
         lines += ["", curve_table(curve_rows, oracles)]
     return "\n".join(lines)
@@ -130,6 +155,8 @@ def main() -> None:
     ap.add_argument("--identifications", nargs="+", choices=sorted(IDENTIFICATIONS), default=["nmse_via_mse"])
     ap.add_argument("--targets", nargs="+", choices=sorted(ORACLES), default=["force"])
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--dataset", type=Path, default=None,
+                    help="the family generated with more parts than the curve's 130: identify those parts instead")
     ap.add_argument("--table", action="store_true", help="print the tables of the rows in OUT and stop")
     ap.add_argument("--curve", nargs="*", default=[], metavar="ROWS",
                     help="with --table: more_test_parts.py's rows of the curve's runs, for the share of the gap")
@@ -143,7 +170,7 @@ def main() -> None:
             return
         print(table(read_rows(args.out), curve_rows))
         return
-    identify_rows(args.out, args.family, args.seeds, args.identifications, args.targets, args.workers)
+    identify_rows(args.out, args.family, args.seeds, args.identifications, args.targets, args.workers, args.dataset)
 
 
 if __name__ == "__main__":

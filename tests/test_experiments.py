@@ -1445,10 +1445,46 @@ def test_oracle_loss_table_gives_the_share_of_the_gap_to_each_oracle_and_where_p
              "fit_F": oracle, "parts": {"rect_0000": oracle}} for seed, oracle in ((0, 90.0), (1, 96.0))]
     printed = printed_table("oracle_loss.py", rows, tmp_path, "--table", "--curve", str(curve))
     spread = statistics.stdev([90.0, 96.0])
-    assert f"| rect | force | nmse_via_mse | 93.00 ± {spread:.2f} (2 seeds) |" in printed
+    assert f"| rect | force | nmse_via_mse | test | 93.00 ± {spread:.2f} (2 seeds) |" in printed
     assert ("| rect | test 20 | 100 | 72.00 ± 2.83 | 60.00 ± 0.00 | 80.00 ± 0.00 (mse, the curve's runs) | 60.0 % "
             "| 0/0 |") in printed
     assert f"| 93.00 ± {spread:.2f} (nmse_via_mse) | 36.4 % | 0/0 |" in printed
     parts = printed_table("oracle_loss.py", rows, tmp_path, "--table", "--curve", str(curve), "--parts",
                           "rect_0000", "--seeds", "1")
     assert "| rect_0000 | 80.00 | 96.00 |" in parts
+
+
+def test_oracle_loss_on_a_larger_dataset_identifies_only_the_parts_after_the_curves(tmp_path):
+    """`--dataset`: the parts numbered from the curve's 130 on become the test split, read from that dataset;
+    a dataset without such parts is refused."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from oracle_loss import on_extra_parts
+    from twin_oracle import family_config
+    for name in ("rect_0000", "rect_0129", "rect_0130", "rect_0131", "pins_0000"):
+        (tmp_path / "parts" / name).mkdir(parents=True)
+    cfg = on_extra_parts(family_config("rect", 0), tmp_path)
+    assert list(cfg.domain.test) == ["rect_0130", "rect_0131"]
+    assert cfg.data.dir == str(tmp_path) and cfg.data.generate.count == 132
+    assert "rect_0130" not in [*cfg.domain.train, *cfg.domain.val]
+    with pytest.raises(SystemExit, match="no pins parts numbered from 130"):
+        on_extra_parts(family_config("pins", 0), tmp_path)
+
+
+def test_oracle_loss_table_joins_the_extra_parts_oracle_to_the_test_parts(tmp_path):
+    """Hand-computed, one seed: 20 test parts (PIPE 70, `nearest` 60, oracle 90) and one extra part identified
+    in a row of its own (`--dataset`: PIPE 50, `nearest` 40, oracle 60). On the test 20 PIPE closes 10 / 30 =
+    33.3 % of the gap; on all 21 (210 / 21) / (620 / 21) = 33.9 %, which needs both rows' parts."""
+    test = [f"rect_{i:04d}" for i in range(20)]
+    fits = {name: {p: value for p in test} | {"rect_0130": extra}
+            for name, value, extra in (("pipe", 70.0, 50.0), ("nearest", 60.0, 40.0), ("oracle", 80.0, 45.0))}
+    curve = tmp_path / "curve.jsonl"
+    curve.write_text(json.dumps({"run": "runs/curve/rect/train_100/seed_0", "train_parts": 100,
+                                 "extra": ["rect_0130"], "fit_F": fits}) + "\n")
+    common = {"family": "rect", "seed": 0, "identification": "nmse_via_mse", "target": "force"}
+    rows = [common | {"held_out": "test", "fit_F": 90.0, "parts": dict.fromkeys(test, 90.0)},
+            common | {"held_out": "extra", "fit_F": 60.0, "parts": {"rect_0130": 60.0}}]
+    printed = printed_table("oracle_loss.py", rows, tmp_path, "--table", "--curve", str(curve))
+    assert "| rect | force | nmse_via_mse | extra | 60.00" in printed
+    assert ("| rect | test 20 | 100 | 70.00 ± 0.00 | 60.00 ± 0.00 | 90.00 ± 0.00 (nmse_via_mse) | 33.3 % "
+            "| 0 |") in printed
+    assert "| rect | all 21 | 100 |" in printed and "(nmse_via_mse) | 33.9 % | 0 |" in printed
