@@ -1473,7 +1473,8 @@ def test_oracle_loss_on_a_larger_dataset_identifies_only_the_parts_after_the_cur
 def test_oracle_loss_table_joins_the_extra_parts_oracle_to_the_test_parts(tmp_path):
     """Hand-computed, one seed: 20 test parts (PIPE 70, `nearest` 60, oracle 90) and one extra part identified
     in a row of its own (`--dataset`: PIPE 50, `nearest` 40, oracle 60). On the test 20 PIPE closes 10 / 30 =
-    33.3 % of the gap; on all 21 (210 / 21) / (620 / 21) = 33.9 %, which needs both rows' parts."""
+    33.3 % of the gap, on the extra part 10 / 20 = 50 %, on all 21 (210 / 21) / (620 / 21) = 33.9 %, which
+    needs both rows' parts."""
     test = [f"rect_{i:04d}" for i in range(20)]
     fits = {name: {p: value for p in test} | {"rect_0130": extra}
             for name, value, extra in (("pipe", 70.0, 50.0), ("nearest", 60.0, 40.0), ("oracle", 80.0, 45.0))}
@@ -1487,4 +1488,6 @@ def test_oracle_loss_table_joins_the_extra_parts_oracle_to_the_test_parts(tmp_pa
     assert "| rect | force | nmse_via_mse | extra | 60.00" in printed
     assert ("| rect | test 20 | 100 | 70.00 ± 0.00 | 60.00 ± 0.00 | 90.00 ± 0.00 (nmse_via_mse) | 33.3 % "
             "| 0 |") in printed
-    assert "| rect | all 21 | 100 |" in printed and "(nmse_via_mse) | 33.9 % | 0 |" in printed
+    assert ("| rect | extra 1 | 100 | 50.00 ± 0.00 | 40.00 ± 0.00 | 60.00 ± 0.00 (nmse_via_mse) | 50.0 % | 0 "
+            "| 50.0 % |") in printed
+    assert "| rect | all 21 | 100 |" in printed and "(nmse_via_mse) | 33.9 % | 0 | 33.9 % |" in printed
