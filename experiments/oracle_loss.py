@@ -80,9 +80,10 @@ def on_extra_parts(cfg: DictConfig, dataset: Path) -> DictConfig:
 
 
 def table(rows: list[dict], curve_rows: list[dict]) -> str:
-    """Per family, target and identification: the oracle's FIT(F) on the test parts, mean ± std over the
-    seeds; with the curve's rows, per size: PIPE, `nearest`, the share of the gap to each oracle that PIPE
-    closes, and on how many parts PIPE is above that oracle (seed by seed)."""
+    """Per family, target, identification and held-out set (the 20 test parts, or the parts after the curve's):
+    the oracle's FIT(F), mean ± std over the seeds; with the curve's rows, per size: PIPE, `nearest`, the share
+    of the gap to each oracle that PIPE closes, and on how many parts PIPE is above that oracle (seed by
+    seed)."""
     oracles: dict[tuple[str, str, str], dict[int, dict[str, float]]] = defaultdict(dict)
     held: dict[tuple[str, str, str, str], list[float]] = defaultdict(list)
     for row in rows:
