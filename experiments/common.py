@@ -137,18 +137,29 @@ def extra_parts(dataset: Path, family: str, used: int) -> list[str]:
     return [name for name in names if int(name.rsplit("_", 1)[1]) >= used]
 
 
+def on_larger_dataset(cfg: DictConfig, dataset: Path, split: str, keep: bool = True) -> list[str]:
+    """`cfg`, a curve config, read on `dataset` (the family generated with more parts) in place: the parts after
+    the curve's join its `split` (or, without `keep`, replace it); their names. A dataset with none is refused."""
+    family, used = cfg.domain.family, int(cfg.data.generate.count)
+    extra = extra_parts(dataset, family, used)
+    if not extra:
+        raise SystemExit(f"{dataset}: no {family} parts numbered from {used} on "
+                         f"(generate it with --count above {used})")
+    with open_dict(cfg):
+        cfg.data.dir, cfg.data.generate.count = str(dataset), used + len(extra)
+        cfg.domain[split] = [*cfg.domain[split], *extra] if keep else extra
+    return extra
+
+
 def with_extra_parts(candidate: Path, dataset: Path, split: str) -> tuple[DictConfig, PreparedDomain, PIPEModel,
                                                                          list[str]]:
     """A trained curve run (or candidate) rebuilt from its checkpoints on `dataset`, the family generated with
     more parts, whose parts after the curve's are added to its `split`: its config, domain, model (eval mode)
     and the added parts' names."""
     cfg = OmegaConf.load(candidate / "config.yaml")
-    family, used = cfg.domain.family, int(cfg.data.generate.count)
-    extra = extra_parts(dataset, family, used)
+    extra = on_larger_dataset(cfg, dataset, split)
     with open_dict(cfg):
         cfg.trainer.progress_bar = False
-        cfg.data.dir, cfg.data.generate.count = str(dataset), used + len(extra)
-        cfg.domain[split] = [*cfg.domain[split], *extra]
     ltv.set_backend(cfg.simulator)
     L.seed_everything(cfg.seed, workers=True)
     data = load_domain(cfg)

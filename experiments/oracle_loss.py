@@ -26,8 +26,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from common import append_row, extra_parts
-from omegaconf import DictConfig, open_dict
+from common import append_row, on_larger_dataset
 from summarise import read_rows, spread
 from twin_oracle import family_config, identification_context
 
@@ -49,7 +48,7 @@ def identify_rows(out: str, family: str, seeds: list[int], identifications: list
             overrides = [f"evaluation.identification.{o}" for o in IDENTIFICATIONS[identification]]
             cfg = family_config(family, seed, overrides)
             if dataset is not None:
-                cfg = on_extra_parts(cfg, dataset)
+                on_larger_dataset(cfg, dataset, "test", keep=False)
             ltv.set_backend(cfg.simulator)
             data = load_domain(cfg)
             test = data.splits["test"]
@@ -63,20 +62,6 @@ def identify_rows(out: str, family: str, seeds: list[int], identifications: list
                        "id_loss": {p: m["id_loss"] for p, m in result.per_part.items()}}
                 append_row(out, row)
                 print(family, seed, identification, target, f"{row['fit_F']:.2f}", flush=True)
-
-
-def on_extra_parts(cfg: DictConfig, dataset: Path) -> DictConfig:
-    """The curve's config read on `dataset`, the family generated with more parts, whose parts after the
-    curve's are its test split instead of the curve's own test parts."""
-    family, used = cfg.domain.family, int(cfg.data.generate.count)
-    extra = extra_parts(dataset, family, used)
-    if not extra:
-        raise SystemExit(f"{dataset}: no {family} parts numbered from {used} on "
-                         f"(generate it with --count above {used})")
-    with open_dict(cfg):
-        cfg.data.dir, cfg.data.generate.count = str(dataset), used + len(extra)
-        cfg.domain.test = extra
-    return cfg
 
 
 def table(rows: list[dict], curve_rows: list[dict]) -> str:

@@ -1458,16 +1458,17 @@ def test_oracle_loss_on_a_larger_dataset_identifies_only_the_parts_after_the_cur
     """`--dataset`: the parts numbered from the curve's 130 on become the test split, read from that dataset;
     a dataset without such parts is refused."""
     sys.path.insert(0, str(ROOT / "experiments"))
-    from oracle_loss import on_extra_parts
+    from common import on_larger_dataset
     from twin_oracle import family_config
     for name in ("rect_0000", "rect_0129", "rect_0130", "rect_0131", "pins_0000"):
         (tmp_path / "parts" / name).mkdir(parents=True)
-    cfg = on_extra_parts(family_config("rect", 0), tmp_path)
+    cfg = family_config("rect", 0)
+    on_larger_dataset(cfg, tmp_path, "test", keep=False)
     assert list(cfg.domain.test) == ["rect_0130", "rect_0131"]
     assert cfg.data.dir == str(tmp_path) and cfg.data.generate.count == 132
     assert "rect_0130" not in [*cfg.domain.train, *cfg.domain.val]
     with pytest.raises(SystemExit, match="no pins parts numbered from 130"):
-        on_extra_parts(family_config("pins", 0), tmp_path)
+        on_larger_dataset(family_config("pins", 0), tmp_path, "test")
 
 
 def test_oracle_loss_table_joins_the_extra_parts_oracle_to_the_test_parts(tmp_path):
