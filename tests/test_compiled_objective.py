@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numba
 import numpy as np
 import pytest
@@ -10,7 +12,7 @@ import torch
 from pipe.data.batches import collate_trials
 from pipe.data.preprocess import Profile
 from pipe.evaluation.compiled_objective import CompiledObjective
-from pipe.evaluation.identification import IdentificationSettings, fit_start, start_head
+from pipe.evaluation.identification import IdentificationSettings, fit_compiled, fit_start, start_head
 from pipe.model import ltv
 from pipe.model.losses import FORCE_LOSSES
 from pipe.model.pipe_model import PIPEModel
@@ -129,3 +131,49 @@ def test_the_compiled_engine_fits_on_one_thread_whatever_the_callers_count(monke
         torch.set_num_threads(callers[0])
         numba.set_num_threads(callers[1])
     assert fit.evaluations == 5 and set(seen) == {(1, 1)} and after == before
+
+
+def diverging_setup() -> tuple[CompiledObjective, GaussianHead, np.ndarray, list[np.ndarray]]:
+    """A free head, its objective, its start, and steps of 50 times a standard normal from the start: of the
+    first 40 such steps, some make the simulation diverge (as a line search's long trial steps can)."""
+    head = GaussianHead(8, 4, num_local_models=5)
+    free = start_head(head, "part", seed=0, start=1)
+    batch = collate_trials([(0, p) for p in trials((120, 160))])
+    objective = CompiledObjective.of(PIPEModel(None, head, MDS2(), 12.0, 4.0), free, batch, ridge=0.1)
+    start = torch.nn.utils.parameters_to_vector(free.parameters()).detach().double().numpy()
+    steps = [start + 50 * np.random.default_rng(k).standard_normal(len(start)) for k in range(40)]
+    return objective, free, start, steps
+
+
+def test_a_diverging_simulation_gives_a_non_finite_objective_without_numpys_warnings():
+    """Regression: a step whose simulation overflows printed numpy's "overflow encountered in square" (and
+    "invalid value") into the identification's log; the objective is still not finite there, silently."""
+    objective, _, _, steps = diverging_setup()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        values = [objective(step)[0] for step in steps]
+    assert sum(not np.isfinite(v) for v in values) >= 1
+    assert sum(np.isfinite(v) for v in values) >= 1
+
+
+def test_the_compiled_fit_keeps_its_lowest_finite_objective_past_non_finite_steps():
+    """Where a step's objective is not finite (here: every point farther than 2 from the start, NaN as a
+    diverging simulation gives), the start ends at the lowest finite objective it evaluated, below the start's,
+    with the head's parameters there."""
+    objective, free, start, _ = diverging_setup()
+    seen: list[tuple[float, np.ndarray]] = []
+
+    def walled(values: np.ndarray) -> tuple[float, float, np.ndarray]:
+        value, mse, gradient = objective(values)
+        if np.linalg.norm(values - start) > 2.0:
+            value, mse, gradient = np.nan, np.nan, np.full_like(values, np.nan)
+        seen.append((value, values.copy()))
+        return value, mse, gradient
+
+    fit = fit_compiled(walled, free, IdentificationSettings(max_evaluations=200))
+    finite = [(v, x) for v, x in seen if np.isfinite(v)]
+    lowest, where = min(finite, key=lambda pair: pair[0])
+    assert len(finite) < len(seen)                   # the wall was hit
+    assert fit.objective == lowest < seen[0][0]      # kept the lowest finite, below the start
+    kept = torch.nn.utils.parameters_to_vector(free.parameters()).double().numpy()
+    np.testing.assert_allclose(kept, where, rtol=1e-6, atol=1e-6)
