@@ -1492,3 +1492,20 @@ def test_oracle_loss_table_joins_the_extra_parts_oracle_to_the_test_parts(tmp_pa
     assert ("| rect | extra 1 | 100 | 50.00 ± 0.00 | 40.00 ± 0.00 | 60.00 ± 0.00 (nmse_via_mse) | 50.0 % | 0 "
             "| 50.0 % |") in printed
     assert "| rect | all 21 | 100 |" in printed and "(nmse_via_mse) | 33.9 % | 0 | 33.9 % |" in printed
+
+
+def test_identification_ridge_table_gives_each_ridges_static_errors_and_fit(tmp_path):
+    """Hand-computed, two parts: static errors 0.1 and 0.5 (largest 0.5, one above 0.3, median 0.3), FIT(F) 90
+    and 70 (mean 80, lowest b); a later row of the same domain, settings and ridge replaces the earlier one,
+    rows of other settings stay."""
+    row = {"domain": "pins", "ridge": 0.1, "settings": "", "seed": 0, "seconds": 12.4,
+           "fit_F": {"a": 90.0, "b": 70.0}, "static_rms_rel": {"a": 0.1, "b": 0.5},
+           "id_evals": {"a": 300.0, "b": 500.0}}
+    earlier = row | {"fit_F": {"a": 0.0, "b": 0.0}}
+    smaller = row | {"ridge": 0.03, "static_rms_rel": {"a": 0.2, "b": 0.2}}
+    pooled = row | {"settings": "loss=mse"}
+    printed = printed_table("identification_ridge.py", [earlier, row, smaller, pooled], tmp_path, "--table")
+    lines = [line for line in printed.splitlines() if line.startswith("| pins")]
+    assert lines == ["| pins | default | 0.03 | 2 | 12 | 0.200 | 0 | 0.200 | 80.00 | 70.00 (b) |",
+                     "| pins | default | 0.1 | 2 | 12 | 0.500 | 1 | 0.300 | 80.00 | 70.00 (b) |",
+                     "| pins | loss=mse | 0.1 | 2 | 12 | 0.500 | 1 | 0.300 | 80.00 | 70.00 (b) |"]
