@@ -7,8 +7,8 @@ start also fitted via the pooled error first (`via_mse`). This script identifies
 parts (never its test parts), as the oracle identifies a test part, under each `--ridges` entry (and further
 `--settings`), and scores the fits on the same trials: one JSON line per domain, settings and ridge with each
 part's FIT(F), its static curve's rms error over its largest force and the kept start's evaluations, and the
-seconds it took. `--table` summarises them as BENCHMARKS.md did: the
-largest static error, the parts above 0.3, the median static error, the mean FIT(F) and the time.
+seconds it took. `--table` summarises them as BENCHMARKS.md did: the largest static error, the parts above
+0.3, the median static error, the mean FIT(F) and the time.
 Results: BENCHMARKS.md, "The ridge under the present objective".
 Usage (two worker processes, one thread each; alone on the machine for the seconds):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/identification_ridge.py OUT.jsonl \
@@ -59,7 +59,7 @@ def table(rows: list[dict]) -> str:
     """Per domain, further settings and ridge (the last row of each): parts, seconds, the largest and the
     median static error over the largest force, the parts above `LARGE`, the mean FIT(F) on the fitted
     trials and the part of the lowest FIT(F)."""
-    kept = {(row["domain"], row.get("settings", ""), row["ridge"]): row for row in rows}
+    kept = {(row["domain"], row["settings"], row["ridge"]): row for row in rows}
     lines = ["| domain | settings | ridge | parts | seconds | largest static error | parts above 0.3 "
              "| median static error | FIT(F) on its own trials, mean | lowest (part) |", "| --- " * 10 + "|"]
     for (domain, settings, ridge), row in sorted(kept.items()):

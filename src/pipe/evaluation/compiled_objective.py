@@ -54,14 +54,11 @@ class CompiledObjective:
         except ImportError:
             return None
 
+    @np.errstate(over="ignore", invalid="ignore", divide="ignore")
     def __call__(self, values: np.ndarray) -> tuple[float, float, np.ndarray]:
         """Where a line search tries a step whose simulation diverges, the objective is infinite or NaN:
         that start then ends where its objective was lowest (`fit_compiled` never keeps a non-finite one),
         so numpy's warnings of overflow, invalid values and division by zero are silenced here."""
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            return self._evaluate(values)
-
-    def _evaluate(self, values: np.ndarray) -> tuple[float, float, np.ndarray]:
         theta = self.profiles.forward(values) * self.scale
         held = 0.5 * (theta[:, 1:] + theta[:, :-1])
         a, b, state_space_backward = self.model.dynamics.state_space_arrays(held)
