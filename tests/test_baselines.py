@@ -411,6 +411,40 @@ def test_gpr_takes_the_kernel_with_the_lowest_validation_error(with_validation):
         assert gpr.length_scale == pytest.approx(gpr.LENGTH_SCALES[int(np.argmin(scores)) - 1])
 
 
+def test_gpr_without_validation_parts_takes_the_kernel_of_the_lowest_leave_one_part_out_error(ctx, monkeypatch):
+    """Each candidate kernel is fitted to the training parts but one and scored on that one, for every part;
+    the kernel of the lowest mean error over those folds is kept, fitted to all of them."""
+    from pipe.evaluation import methods
+
+    context, _ = ctx
+    context.train.append(part("c", 5.0))
+    context.index["c"] = 3
+    context.latents = torch.cat([context.latents, torch.full((1, 32), 2.0)])
+    folds = []
+    original = methods.validation_errors
+    monkeypatch.setattr(methods, "validation_errors",
+                        lambda m, c: folds.append(([p.name for p in c.val], len(m.gp.X_train_), original(m, c)))
+                        or folds[-1][2])
+    gpr = METHODS["gpr"]()
+    gpr.fit(context)
+    kernels = 1 + len(gpr.LENGTH_SCALES)
+    assert [names for names, _, _ in folds] == [["a"], ["b"], ["c"]] * kernels   # each part left out once
+    assert all(fitted_to == 2 for _, fitted_to, _ in folds)                     # fitted to the two others
+    scores = [np.mean(np.concatenate([e for _, _, e in folds[3 * k: 3 * k + 3]])) for k in range(kernels)]
+    assert len(gpr.gp.X_train_) == 3                                             # kept: fitted to all three
+    best = int(np.argmin(scores))
+    if best > 0:
+        assert gpr.length_scale == pytest.approx(gpr.LENGTH_SCALES[best - 1])
+    assert gpr.gp.kernel == gpr.kernels(32)[best]
+
+
+def test_gpr_with_two_training_parts_and_no_validation_part_takes_the_likelihood_optimum(ctx):
+    context, _ = ctx
+    gpr = METHODS["gpr"]()
+    gpr.fit(context)
+    assert gpr.gp.kernel == gpr.kernels(32)[0]
+
+
 def test_blackbox_keeps_the_weights_of_its_lowest_validation_error(with_validation):
     context, scores, validation_nmse = with_validation
     context.settings["blackbox_steps"] = 450

@@ -674,6 +674,16 @@ def test_candidate_cv_holds_out_each_non_test_part_per_candidate_as_part_cv_does
     for part in non_test:
         alone = statistics.mean([pipe[("force_weight_0", part)], pipe[("force_weight_100", part)]])
         assert pipe[("ensemble", part)] >= alone - 1e-9 * max(1.0, abs(alone))
+    # gpr_cv.py, which trains nothing again, gives the kept candidate's gpr and gpr in hindsight to the digit
+    gpr_file = tmp_path / "gpr.jsonl"
+    run_script("gpr_cv.py", str(gpr_file), str(run.run_dir), "--fits", str(tmp_path / "fits"))
+    gpr_rows = {r["held_out"]: r for r in map(json.loads, gpr_file.read_text().splitlines())}
+    assert sorted(gpr_rows) == sorted(non_test)
+    for row in rows:
+        if row.get("chosen"):
+            assert gpr_rows[row["held_out"]]["candidate"] == kept
+            for column in ("gpr", "gpr_hindsight"):
+                assert gpr_rows[row["held_out"]][column] == pytest.approx(row[column], abs=1e-9)
 
 
 @pytest.mark.slow
@@ -785,6 +795,21 @@ def test_candidate_cv_table_averages_the_held_out_parts_per_seed_and_reads_the_k
     assert "| pins | seed_0 | force_weight_1000 | +50.00 | +50.00 | force_weight_0 | force_weight_0 |" in printed
     assert "| pins | seed_1 | force_weight_0 | +40.00 | +40.00 | force_weight_0 | force_weight_1000 |" in printed
     assert "| pins | seed_1 | force_weight_1000 | +10.00 | -30.00 | force_weight_0 | force_weight_1000 |" in printed
+
+
+def test_gpr_cv_table_averages_the_held_out_parts_per_seed(tmp_path):
+    def row(run, part, gpr, likelihood, hindsight):
+        return {"run": run, "candidate": "force_weight_0", "held_out": part, "gpr": gpr,
+                "gpr_likelihood": likelihood, "gpr_hindsight": hindsight}
+    rows = [row("runs/pins/seed_0", "a", 50.0, -10.0, 60.0), row("runs/pins/seed_0", "b", 70.0, 10.0, 80.0),
+            row("runs/pins/seed_1", "a", 20.0, -30.0, 30.0), row("runs/pins/seed_1", "b", 40.0, -20.0, 90.0),
+            row("runs/conn/seed_0", "c", 5.0, 1.0, 7.0)]
+    printed = printed_table("gpr_cv.py", rows, tmp_path, "--table")
+    # pins per seed: leave-one-out 60, 30; likelihood 0, -25; hindsight 70, 60; medians over the four cases
+    sd = statistics.stdev
+    assert (f"| pins (2) | 45.00 ± {sd([60, 30]):.2f} (45.00) | -12.50 ± {sd([0, -25]):.2f} (-15.00) | "
+            f"65.00 ± {sd([70, 60]):.2f} (70.00) |") in printed
+    assert "| conn (1) | 5.00 ± 0.00 (5.00) | 1.00 ± 0.00 (1.00) | 7.00 ± 0.00 (7.00) |" in printed
 
 
 def test_candidate_cv_test_table_scores_on_the_test_parts_the_candidate_the_cross_validation_prefers(tmp_path):

@@ -1,0 +1,110 @@
+"""Issue 9: gpr over every non-test part of a trained run held out in turn, on the run's own codes.
+
+Three ways gpr can choose its kernel in a fold, which has no validation parts: as the evaluation fits it there
+(`gpr`: by leaving each of the fold's training parts out in turn, since 2026-12-01), by the marginal
+likelihood alone (`gpr_likelihood`: the evaluation's choice before), and with its input and kernel chosen on
+the held-out part itself (`gpr_hindsight`: an optimistic bound, the best gpr of its grid). gpr reads the
+codes of the run's kept candidate and no head, so unlike candidate_cv.py (whose `gpr` and `gpr_hindsight`
+these are) nothing is trained again. The test parts are never used. One JSON line per run and held-out part.
+Results: docs/experiments.md, "gpr's kernel by leaving each training part out".
+Usage (one thread, as the results were measured):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/gpr_cv.py OUT.jsonl runs/pins/seed_{0,1,2}
+  python experiments/gpr_cv.py OUT.jsonl --table
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import time
+from collections import defaultdict
+from dataclasses import replace
+from pathlib import Path
+
+from common import append_row, kept_folder, load_encoder, load_run
+from omegaconf import OmegaConf
+from profile_pretraining import FITS
+from summarise import domain_of, read_rows
+
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import evaluate_methods
+from pipe.evaluation.methods import GPR, METHODS
+from pipe.pipeline import build_model, latent_codes
+
+COLUMNS = {"gpr": "gpr, leave-one-out", "gpr_likelihood": "gpr, likelihood", "gpr_hindsight": "gpr, hindsight"}
+
+
+@METHODS.register
+class LikelihoodGPR(GPR):
+    """gpr with its kernel's marginal-likelihood optimum alone where there are no validation parts."""
+
+    name = "gpr_likelihood"
+
+    @staticmethod
+    def kernels(dims: int) -> list:
+        return GPR.kernels(dims)[:1]
+
+
+def cross_validate(run: Path, out: str, fits: str) -> None:
+    """A row per non-test part of the run: the three gprs' FIT(F) on it, fitted to the other non-test parts."""
+    candidate = kept_folder(run)
+    cfg, data, components = load_run(candidate)
+    load_encoder(components[0], candidate)
+    model = build_model(cfg, data, components).eval()
+    latents, _, index = latent_codes(model, data)
+    settings = OmegaConf.to_container(cfg.evaluation, resolve=True)
+    settings["identification"]["cache"] = fits      # each part identified once for all folds
+    pool = data.splits["train"] + data.splits["val"]
+    for held_out in pool:
+        start = time.perf_counter()
+        train = [p for p in pool if p is not held_out]
+        ctx = EvalContext(model, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed, settings, val=[])
+        results = evaluate_methods(ctx, [held_out], ["gpr", "gpr_likelihood"])
+        hindsight = evaluate_methods(replace(ctx, val=[held_out]), [held_out], ["gpr"])["gpr"]
+        append_row(out, {"run": str(run), "candidate": candidate.name, "held_out": held_out.name,
+                         "gpr": results["gpr"].domain["fit_F"],
+                         "gpr_likelihood": results["gpr_likelihood"].domain["fit_F"],
+                         "gpr_hindsight": hindsight.domain["fit_F"],
+                         "length_scale": results["gpr"].per_part[held_out.name]["gpr_length_scale"],
+                         "seconds": time.perf_counter() - start})
+
+
+def table(rows: list[dict]) -> str:
+    """Per domain and column: the mean FIT(F) over the held-out parts per run, then mean ± std over the runs (in
+    brackets the median over every held-out part and run)."""
+    lines = ["| domain (held-out parts) | " + " | ".join(COLUMNS.values()) + " |", "| --- |" + " --- |" * len(COLUMNS)]
+    for domain in dict.fromkeys(domain_of(r["run"]) for r in rows):
+        cells, parts = [], set()
+        for column in COLUMNS:
+            per_run = defaultdict(list)
+            for row in rows:
+                if domain_of(row["run"]) == domain:
+                    per_run[row["run"]].append(row[column])
+                    parts.add(row["held_out"])
+            means = [statistics.fmean(v) for v in per_run.values()]
+            spread = statistics.stdev(means) if len(means) > 1 else 0.0
+            median = statistics.median(v for values in per_run.values() for v in values) if means else math.nan
+            cells.append(f"{statistics.fmean(means):.2f} ± {spread:.2f} ({median:.2f})")
+        lines.append(f"| {domain} ({len(parts)}) | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
+    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
+    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap.add_argument("--fits", default=FITS, help="folder for gpr's identified profiles (relative: to the project "
+                    "root)")
+    args = ap.parse_args()
+    if args.table:
+        print(table(read_rows(args.out)))
+        return
+    for run in args.runs:
+        cross_validate(Path(run), args.out, args.fits)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    main()
