@@ -6,9 +6,10 @@ validation loss: on the paper domains 1 to 3 validation parts, which on the test
 two in 4 of 9 runs (docs/experiments/candidate_ensemble.jsonl). Here, per candidate, every training and
 validation part is held out in turn (`part_cv.fold_models`: the head trained again on the other non-test
 parts, on the candidate's stage-1 encoder) and scored on its trials: the candidate's PIPE, `nearest` and gpr
-on the candidate's codes (without validation parts: gpr's kernel by its marginal likelihood, both reading
-what the head reads), gpr with its input and length scale chosen on the held-out part itself
-(`gpr_hindsight`, an optimistic bound: the best gpr of its grid), and, once both candidates are through, the
+on the candidate's codes (both reading what the head reads; without validation parts gpr's kernel is chosen
+by leaving each of the fold's training parts out in turn, before 2026-12-01 by its marginal likelihood
+alone), gpr with its input and length scale chosen on the held-out part itself (`gpr_hindsight`, an
+optimistic bound: the best gpr of its grid), and, once both candidates are through, the
 mean of the two candidates' PIPE forces (`ensemble`). The test parts are never used. Caveat: the
 force-weighted candidate's stage 1 saw the recordings of the training parts it holds out, unless `--stage1`
 trains it again per fold on the fold's training parts (`part_cv.fold_encoder`). The rule, set before the
