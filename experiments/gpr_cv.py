@@ -7,9 +7,12 @@ the held-out part itself (`gpr_hindsight`: an optimistic bound, the best gpr of 
 codes of the run's kept candidate and no head, so unlike candidate_cv.py (whose `gpr` and `gpr_hindsight`
 these are) nothing is trained again. The test parts are never used. One JSON line per run and held-out part.
 Results: docs/experiments.md, "gpr's kernel by leaving each training part out".
+`--pipe ROWS` pairs the table with PIPE's folds on the same runs (`part_cv.py --variants default`: the head
+trained again per fold on the run's own stage 1, which is what gpr's codes come from too): PIPE minus gpr per
+seed, on the same held-out parts.
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/gpr_cv.py OUT.jsonl runs/pins/seed_{0,1,2}
-  python experiments/gpr_cv.py OUT.jsonl --table
+  python experiments/gpr_cv.py OUT.jsonl --table [--pipe PART_CV_ROWS]
 """
 from __future__ import annotations
 
@@ -25,7 +28,7 @@ from pathlib import Path
 from common import append_row, kept_folder, load_encoder, load_run
 from omegaconf import OmegaConf
 from profile_pretraining import FITS
-from summarise import domain_of, read_rows
+from summarise import domain_of, read_rows, spread
 
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
@@ -90,6 +93,35 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def paired(rows: list[dict], pipe_rows: list[dict]) -> str:
+    """Per domain and seed: the mean over the held-out parts of PIPE's FIT(F) (part_cv.py's `default` rows) minus
+    gpr's (leave-one-out) on the same run and parts, then those differences' mean ± std over the seeds, and in
+    how many of the cases (run and held-out part) PIPE is above gpr. Only the domains PIPE's rows hold; a case of
+    theirs that only one of the two files holds stops the script: the pairing would not be on the same parts."""
+    pipe = {(r["run"], r["held_out"]): r["fit"] for r in pipe_rows if r["variant"] == "default"}
+    domains = {domain_of(run) for run, _ in pipe}
+    gpr = {(r["run"], r["held_out"]): r["gpr"] for r in rows if domain_of(r["run"]) in domains}
+    if pipe.keys() != gpr.keys():
+        unmatched = sorted(pipe.keys() ^ gpr.keys())
+        raise SystemExit(f"PIPE's and gpr's rows hold different folds, e.g. {unmatched[0]}: pair rows of the same runs")
+    lines = ["| domain | PIPE | gpr, leave-one-out | PIPE − gpr per seed | PIPE − gpr | PIPE above gpr |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for domain in dict.fromkeys(domain_of(run) for run, _ in pipe):
+        runs = defaultdict(list)
+        for key in pipe:
+            if domain_of(key[0]) == domain:
+                runs[key[0]].append(key)
+        pipe_means = [statistics.fmean(pipe[k] for k in keys) for keys in runs.values()]
+        gpr_means = [statistics.fmean(gpr[k] for k in keys) for keys in runs.values()]
+        differences = [a - b for a, b in zip(pipe_means, gpr_means)]
+        above = sum(pipe[k] > gpr[k] for keys in runs.values() for k in keys)
+        cases = sum(len(keys) for keys in runs.values())
+        lines.append(f"| {domain} | {spread(pipe_means)} | {spread(gpr_means)} | "
+                     + ", ".join(f"{d:+.2f}" for d in differences)
+                     + f" | {spread(differences)} | {above} of {cases} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
@@ -97,9 +129,14 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--fits", default=FITS, help="folder for gpr's identified profiles (relative: to the project "
                     "root)")
+    ap.add_argument("--pipe", metavar="ROWS", help="with --table: part_cv.py's rows of the same runs; adds PIPE "
+                    "paired with gpr, seed by seed")
     args = ap.parse_args()
     if args.table:
-        print(table(read_rows(args.out)))
+        rows = read_rows(args.out)
+        print(table(rows))
+        if args.pipe:
+            print("\n" + paired(rows, read_rows(args.pipe)))
         return
     for run in args.runs:
         cross_validate(Path(run), args.out, args.fits)

@@ -1534,3 +1534,18 @@ def test_identification_ridge_table_gives_each_ridges_static_errors_and_fit(tmp_
     assert lines == ["| pins | default | 0.03 | 2 | 12 | 0.200 | 0 | 0.200 | 80.00 | 70.00 (b) |",
                      "| pins | default | 0.1 | 2 | 12 | 0.500 | 1 | 0.300 | 80.00 | 70.00 (b) |",
                      "| pins | loss=mse | 0.1 | 2 | 12 | 0.500 | 1 | 0.300 | 80.00 | 70.00 (b) |"]
+
+
+def test_gpr_cv_pairs_pipes_folds_with_gprs_seed_by_seed(tmp_path):
+    gpr = [{"run": f"runs/pins/seed_{s}", "candidate": "force_weight_0", "held_out": p, "gpr": v,
+            "gpr_likelihood": 0.0, "gpr_hindsight": 0.0} for s, p, v in ((0, "a", 10.0), (0, "b", 30.0),
+                                                                         (1, "a", 50.0), (1, "b", 50.0))]
+    pipe = [{"run": f"runs/pins/seed_{s}", "variant": "default", "held_out": p, "fit": v, "nearest": 0.0}
+            for s, p, v in ((0, "a", 40.0), (0, "b", 20.0), (1, "a", 45.0), (1, "b", 65.0))]
+    pipe_file = tmp_path / "pipe.jsonl"
+    pipe_file.write_text("".join(json.dumps(row) + "\n" for row in pipe))
+    printed = printed_table("gpr_cv.py", gpr, tmp_path, "--table", "--pipe", str(pipe_file))
+    # per seed: PIPE 30, 55; gpr 20, 50; differences +10, +5; PIPE above gpr in a(0), a... : 40>10, 20<30, 45<50, 65>50
+    sd = statistics.stdev
+    assert (f"| pins | 42.50 ± {sd([30, 55]):.2f} | 35.00 ± {sd([20, 50]):.2f} | +10.00, +5.00 | "
+            f"7.50 ± {sd([10, 5]):.2f} | 2 of 4 |") in printed
