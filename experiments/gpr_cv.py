@@ -106,19 +106,18 @@ def paired(rows: list[dict], pipe_rows: list[dict]) -> str:
         raise SystemExit(f"PIPE's and gpr's rows hold different folds, e.g. {unmatched[0]}: pair rows of the same runs")
     lines = ["| domain | PIPE | gpr, leave-one-out | PIPE − gpr per seed | PIPE − gpr | PIPE above gpr |",
              "| --- | --- | --- | --- | --- | --- |"]
-    for domain in dict.fromkeys(domain_of(run) for run, _ in pipe):
-        runs = defaultdict(list)
-        for key in pipe:
-            if domain_of(key[0]) == domain:
-                runs[key[0]].append(key)
+    folds = defaultdict(lambda: defaultdict(list))     # domain -> run -> its (run, held-out part) keys
+    for key in pipe:
+        folds[domain_of(key[0])][key[0]].append(key)
+    for domain, runs in folds.items():
         pipe_means = [statistics.fmean(pipe[k] for k in keys) for keys in runs.values()]
         gpr_means = [statistics.fmean(gpr[k] for k in keys) for keys in runs.values()]
         differences = [a - b for a, b in zip(pipe_means, gpr_means)]
-        above = sum(pipe[k] > gpr[k] for keys in runs.values() for k in keys)
-        cases = sum(len(keys) for keys in runs.values())
+        keys = [k for run_keys in runs.values() for k in run_keys]
+        above = sum(pipe[k] > gpr[k] for k in keys)
         lines.append(f"| {domain} | {spread(pipe_means)} | {spread(gpr_means)} | "
                      + ", ".join(f"{d:+.2f}" for d in differences)
-                     + f" | {spread(differences)} | {above} of {cases} |")
+                     + f" | {spread(differences)} | {above} of {len(keys)} |")
     return "\n".join(lines)
 
 

@@ -1545,7 +1545,7 @@ def test_gpr_cv_pairs_pipes_folds_with_gprs_seed_by_seed(tmp_path):
     pipe_file = tmp_path / "pipe.jsonl"
     pipe_file.write_text("".join(json.dumps(row) + "\n" for row in pipe))
     printed = printed_table("gpr_cv.py", gpr, tmp_path, "--table", "--pipe", str(pipe_file))
-    # per seed: PIPE 30, 55; gpr 20, 50; differences +10, +5; PIPE above gpr in a(0), a... : 40>10, 20<30, 45<50, 65>50
+    # per seed: PIPE 30, 55; gpr 20, 50; differences +10, +5; PIPE above gpr in 2 of 4 cases (40 > 10, 65 > 50)
     sd = statistics.stdev
     assert (f"| pins | 42.50 ± {sd([30, 55]):.2f} | 35.00 ± {sd([20, 50]):.2f} | +10.00, +5.00 | "
             f"7.50 ± {sd([10, 5]):.2f} | 2 of 4 |") in printed
