@@ -341,6 +341,27 @@ def test_oracle_starts_reproduce_the_runs_oracle_with_its_own_number_of_starts(t
         assert all(later <= earlier for earlier, later in zip(objectives, objectives[1:]))
 
 
+def test_gpr_targets_neutral_start_is_the_runs_gpr_and_a_perturbed_start_moves_the_targets(trained_run, tmp_path):
+    """Perturbation 0 is the evaluation's own gpr to the digit (PIPE and `nearest` beside it too); a start moved by
+    0 is the same fit, and so is the consensus of identical targets; a start moved by 0.3 moves the targets."""
+    fits = str(tmp_path / "fits")
+    rows_file, moved_file = tmp_path / "rows.jsonl", tmp_path / "moved.jsonl"
+    run_script("gpr_targets.py", str(rows_file), str(trained_run.run_dir), "--perturbations", "1", "--eps", "0",
+               "--fits", fits)
+    reference, neutral, unmoved, consensus = [json.loads(line) for line in rows_file.read_text().splitlines()]
+    for method, row in (("pipe", reference), ("nearest", reference), ("gpr", neutral)):
+        assert row[method] == pytest.approx(trained_run.results[method].domain["fit_F"], abs=1e-9), method
+    assert unmoved["targets"] == neutral["targets"] and unmoved["gpr"] == neutral["gpr"]
+    assert consensus["gpr"] == pytest.approx(neutral["gpr"], abs=1e-6)
+    run_script("gpr_targets.py", str(moved_file), str(trained_run.run_dir), "--perturbations", "1", "--eps", "0.3",
+               "--fits", fits)
+    _, again, moved, _ = [json.loads(line) for line in moved_file.read_text().splitlines()]
+    assert again["targets"] == neutral["targets"]          # the neutral start's fits, read from the cache
+    assert moved["targets"] != neutral["targets"]
+    table = run_script("gpr_targets.py", str(moved_file), "--table")
+    assert f"| {neutral['gpr']:.2f} ± 0.00 |" in table
+
+
 def test_oracle_starts_table_counts_the_cases_already_at_the_best_objective(tmp_path):
     objectives = {("runs/dsub/seed_0", 1): -1.0, ("runs/dsub/seed_0", 2): -2.0,
                   ("runs/dsub/seed_1", 1): -3.0, ("runs/dsub/seed_1", 2): -3.0}

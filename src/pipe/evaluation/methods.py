@@ -318,20 +318,24 @@ class GPR(CodeBaseline):
     def identifications(self, ctx, parts):
         return [Request(ctx.train, restarts=1)]
 
-    def fit_inputs(self, ctx):
-        rows, targets = [], []
+    def targets(self, ctx: EvalContext) -> np.ndarray:
+        """(training parts, P * G): the regression's outputs, the log of each training part's identified
+        profiles at `grid` fractions of its trials' mean max depth, parameter by parameter."""
+        targets = []
         for part, identified in zip(ctx.train, identify(ctx, ctx.train, restarts=1)):
             depth_max = float(np.mean([np.abs(p.depth).max() for p in part.profiles]))
             depth = torch.tensor(self.grid * depth_max, dtype=torch.float32)[None]
             theta = identified.model.profile(ctx.latent(part)[None], torch.tensor([depth_max]))(depth)  # (1, G, P)
-            rows.append(self.code(ctx, part).numpy())
             targets.append(np.log(theta[0].numpy()).T.ravel())
-        x = np.stack(rows)
+        return np.stack(targets)
+
+    def fit_inputs(self, ctx):
+        x = np.stack([self.code(ctx, part).numpy() for part in ctx.train])
         self.mean, self.std = x.mean(0), x.std(0) + 1e-9
         kept = self.standardised_already(ctx).numpy()
         self.mean[kept], self.std[kept] = 0.0, 1.0
         self.num_parameters = len(ctx.model.dynamics.parameter_names)
-        inputs, outputs = (x - self.mean) / self.std, np.stack(targets)
+        inputs, outputs = (x - self.mean) / self.std, self.targets(ctx)
         kernels = self.kernels(x.shape[1])
         if not ctx.val and len(ctx.train) < 3:    # nothing to choose by: the marginal-likelihood optimum alone
             kernels = kernels[:1]

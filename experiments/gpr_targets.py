@@ -1,0 +1,175 @@
+"""Issue 9: how far gpr's targets and its test figure move when the identification starts a hair off its start.
+gpr regresses each training part's profiles identified from the neutral start alone (`GPR.targets`). The same
+code gave gpr other figures on two AMD hosts while PIPE and `nearest` repeated to the digit
+(docs/experiments.md, "PIPE and gpr paired over the same folds"): its targets ended in other local minima. This
+script measures on one host whether a start moved by `--eps` (each free parameter plus eps times a standard
+normal draw of its own per perturbation and part; the free parameters are 0 at the neutral profile, of order 1 at
+the random starts) moves the targets and gpr's test FIT(F) as far. Perturbation 0 is the evaluation's own neutral
+start. Each perturbation identifies the training parts in a fit cache of its own (`--fits`, perturbation 0 in
+the folder itself; a fit from the neutral start draws nothing, so every run of a domain shares it), fits gpr as
+the evaluation does (its kernel chosen on the run's validation parts) and scores it on the run's test parts;
+`gpr_consensus` is gpr on the mean over the perturbations of each target (log profiles), a smoother target. The
+test parts only score: nothing is chosen on them. One JSON line per run and perturbation, one per run for the
+consensus and for PIPE and `nearest`, whose figures do not depend on the perturbation.
+Results: docs/experiments.md, "gpr's targets under a perturbed start".
+Usage (one thread, as the results were measured):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/gpr_targets.py OUT.jsonl runs/dsub/seed_{0,1,2}
+  python experiments/gpr_targets.py OUT.jsonl --table
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import statistics
+import time
+import zlib
+from collections import defaultdict
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import append_row, kept_folder, load_encoder, load_head_stage, load_run
+from omegaconf import OmegaConf
+from profile_pretraining import FITS
+from summarise import domain_of, read_rows, spread
+
+from pipe.evaluation import identification
+from pipe.evaluation.context import EvalContext
+from pipe.evaluation.evaluate import evaluate_methods
+from pipe.evaluation.methods import GPR, METHODS, model_forces
+from pipe.evaluation.metrics import fit_percent
+from pipe.pipeline import build_model, latent_codes
+
+NEUTRAL_START = identification.start_head
+
+
+@contextlib.contextmanager
+def perturbed_starts(eps: float, perturbation: int) -> Iterator[None]:
+    """Every neutral start (start 0) moved by eps times a standard normal draw per free parameter, from a
+    generator of its own per perturbation and part; perturbation 0 leaves the starts as they are."""
+    def start_head(template, name: str, seed: int, start: int):
+        head = NEUTRAL_START(template, name, seed, start)
+        if start == 0 and perturbation > 0:
+            generator = torch.Generator().manual_seed(perturbation * 2**32 + zlib.crc32(name.encode()))
+            with torch.no_grad():
+                for parameter in head.parameters():
+                    parameter.add_(eps * torch.randn(parameter.shape, generator=generator))
+        return head
+
+    identification.start_head = start_head
+    try:
+        yield
+    finally:
+        identification.start_head = NEUTRAL_START
+
+
+@METHODS.register
+class ConsensusGPR(GPR):
+    """gpr on given targets (the mean over the perturbations' log profiles) instead of one identification's."""
+
+    name = "gpr_consensus"
+    given: np.ndarray | None = None
+
+    def targets(self, ctx):
+        return self.given
+
+
+def own_fit(ctx: EvalContext, part, identified) -> float:
+    """FIT(F) [%] of a training part's identified profiles on its own trials, mean over the trials."""
+    forces = model_forces(ctx, identified.model, ctx.latent(part), part)
+    return float(np.mean([fit_percent(p.force, f) for p, f in zip(part.profiles, forces)]))
+
+
+def perturb_run(run: Path, out: str, eps: float, perturbations: int, fits: str) -> None:
+    candidate = kept_folder(run)
+    cfg, data, components = load_run(candidate)
+    load_encoder(components[0], candidate)
+    model = build_model(cfg, data, components)
+    load_head_stage(model, candidate / "checkpoints/head/best.ckpt")     # for PIPE's figure beside gpr's
+    model.eval()
+    latents, _, index = latent_codes(model, data)
+    settings = OmegaConf.to_container(cfg.evaluation, resolve=True)
+    train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
+
+    def context(perturbation: int = 0) -> EvalContext:
+        settings["identification"]["cache"] = fits if perturbation == 0 else f"{fits}/perturbed_{eps:g}_{perturbation}"
+        return EvalContext(model, latents, index, train, 1.0 / cfg.data.rate_hz, cfg.seed, settings, val=val)
+
+    others = evaluate_methods(context(), test, ["pipe", "nearest"])
+    append_row(out, {"run": str(run), "kind": "reference", **{m: r.domain["fit_F"] for m, r in others.items()}})
+    all_targets = []
+    for perturbation in range(perturbations + 1):
+        start = time.perf_counter()
+        ctx = context(perturbation)
+        with perturbed_starts(eps, perturbation):
+            result = evaluate_methods(ctx, test, ["gpr"])["gpr"]
+        targets = GPR().targets(ctx)     # the fits evaluate_methods made, from the context's cache
+        all_targets.append(targets)
+        fitted = identification.identify(ctx, train, restarts=1)
+        append_row(out, {"run": str(run), "kind": "perturbation", "perturbation": perturbation, "eps": eps,
+                         "gpr": result.domain["fit_F"],
+                         "test_parts": {p: m["fit_F"] for p, m in result.per_part.items()},
+                         "length_scale": next(iter(result.per_part.values()))["gpr_length_scale"],
+                         "own_fit": {p.name: own_fit(ctx, p, f) for p, f in zip(train, fitted)},
+                         "targets": targets.tolist(), "seconds": time.perf_counter() - start})
+    ConsensusGPR.given = np.mean(all_targets, axis=0)
+    consensus = evaluate_methods(context(), test, ["gpr_consensus"])["gpr_consensus"]
+    append_row(out, {"run": str(run), "kind": "consensus", "perturbations": perturbations, "eps": eps,
+                     "gpr": consensus.domain["fit_F"]})
+
+
+def table(rows: list[dict]) -> str:
+    """Per domain: gpr's test FIT(F) at the neutral start and over the perturbed starts (mean ± std over the runs
+    of each run's mean; in brackets the lowest and highest single figure), the consensus, PIPE and `nearest`, and
+    how far the perturbed targets lie from the neutral start's (rms of the log profiles' difference, median over
+    the runs, parts and perturbations; in brackets the largest) and what they fit of their own part (the
+    largest drop of own FIT(F) from the neutral start's)."""
+    lines = ["| domain | PIPE | `nearest` | gpr, neutral start | gpr, perturbed starts (lowest, highest) | "
+             "gpr, consensus | targets' rms change (largest) | largest own-FIT(F) change |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    by_domain: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for row in rows:
+        by_domain[domain_of(row["run"])][row["kind"]].append(row)
+    for domain, kinds in by_domain.items():
+        runs = defaultdict(list)
+        for row in kinds["perturbation"]:
+            runs[row["run"]].append(row)
+        neutral = [next(r for r in rs if r["perturbation"] == 0) for rs in runs.values()]
+        moved = [[r for r in rs if r["perturbation"] > 0] for rs in runs.values()]
+        single = [r["gpr"] for rs in moved for r in rs]
+        changes, own = [], []
+        for base, others in zip(neutral, moved):
+            for r in others:
+                difference = np.asarray(r["targets"]) - np.asarray(base["targets"])
+                changes.extend(np.sqrt(np.mean(difference**2, axis=1)))
+                own.extend(r["own_fit"][p] - base["own_fit"][p] for p in base["own_fit"])
+        perturbed = spread([statistics.fmean(r["gpr"] for r in rs) for rs in moved])
+        lines.append(
+            f"| {domain} | {spread([r['pipe'] for r in kinds['reference']])} | "
+            f"{spread([r['nearest'] for r in kinds['reference']])} | {spread([r['gpr'] for r in neutral])} | "
+            f"{perturbed} ({min(single):.2f}, {max(single):.2f}) | {spread([r['gpr'] for r in kinds['consensus']])} | "
+            f"{statistics.median(changes):.3f} ({max(changes):.3f}) | {max(own, key=abs):+.2f} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
+    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
+    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap.add_argument("--eps", type=float, default=1e-6, help="size of the start's perturbation (default 1e-6)")
+    ap.add_argument("--perturbations", type=int, default=4, help="perturbed starts per run (default 4)")
+    ap.add_argument("--fits", default=FITS, help="folder for the identified profiles (relative: to the project root)")
+    args = ap.parse_args()
+    if args.table:
+        print(table(read_rows(args.out)))
+        return
+    for run in args.runs:
+        perturb_run(Path(run), args.out, args.eps, args.perturbations, args.fits)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(Path(__file__).resolve().parents[1]))
+    main()
