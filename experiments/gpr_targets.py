@@ -52,7 +52,8 @@ def perturbed_starts(eps: float, perturbation: int) -> Iterator[None]:
     def start_head(template, name: str, seed: int, start: int):
         head = NEUTRAL_START(template, name, seed, start)
         if start == 0 and perturbation > 0:
-            generator = torch.Generator().manual_seed(perturbation * 2**32 + zlib.crc32(name.encode()))
+            entropy = np.random.SeedSequence([perturbation, zlib.crc32(name.encode())]).generate_state(1)[0]
+            generator = torch.Generator().manual_seed(int(entropy))     # torch keeps 32 bits of a seed
             with torch.no_grad():
                 for parameter in head.parameters():
                     parameter.add_(eps * torch.randn(parameter.shape, generator=generator))

@@ -341,6 +341,34 @@ def test_oracle_starts_reproduce_the_runs_oracle_with_its_own_number_of_starts(t
         assert all(later <= earlier for earlier, later in zip(objectives, objectives[1:]))
 
 
+def test_gpr_targets_perturbations_move_the_neutral_start_alone_each_by_a_draw_of_its_own():
+    import torch
+    from conftest import compose_config
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from gpr_targets import NEUTRAL_START, perturbed_starts
+
+    from pipe.evaluation import identification
+    from pipe.pipeline import build_components
+
+    head = build_components(compose_config([]))[1]
+
+    def values(start_head, number: int):
+        return torch.cat([p.detach().flatten() for p in start_head(head, "dsub9", 0, number).parameters()])
+
+    starts = []
+    for perturbation in (0, 1, 2):
+        with perturbed_starts(1e-6, perturbation):
+            starts.append(values(identification.start_head, 0))
+            # a random start stays as it was
+            assert torch.equal(values(identification.start_head, 1), values(NEUTRAL_START, 1))
+    assert identification.start_head is NEUTRAL_START          # restored on leaving
+    assert torch.equal(starts[0], torch.zeros_like(starts[0]))
+    for moved in starts[1:]:
+        assert 0 < moved.abs().max() < 1e-5
+    assert not torch.equal(starts[1], starts[2])    # each perturbation its own draw (a bug once drew one for all)
+
+
 def test_gpr_targets_neutral_start_is_the_runs_gpr_and_a_perturbed_start_moves_the_targets(trained_run, tmp_path):
     """Perturbation 0 is the evaluation's own gpr to the digit (PIPE and `nearest` beside it too); a start moved by
     0 is the same fit, and so is the consensus of identical targets; a start moved by 0.3 moves the targets."""
