@@ -3,14 +3,18 @@ gpr regresses each training part's profiles identified from the neutral start al
 code gave gpr other figures on two AMD hosts while PIPE and `nearest` repeated to the digit
 (docs/experiments.md, "PIPE and gpr paired over the same folds"): its targets ended in other local minima. This
 script measures on one host whether a start moved by `--eps` (each free parameter plus eps times a standard
-normal draw of its own per perturbation and part; the free parameters are 0 at the neutral profile, of order 1 at
-the random starts) moves the targets and gpr's test FIT(F) as far. Perturbation 0 is the evaluation's own neutral
-start. Each perturbation identifies the training parts in a fit cache of its own (`--fits`, perturbation 0 in
-the folder itself; a fit from the neutral start draws nothing, so every run of a domain shares it), fits gpr as
-the evaluation does (its kernel chosen on the run's validation parts) and scores it on the run's test parts;
-`gpr_consensus` is gpr on the mean over the perturbations of each target (log profiles), a smoother target. The
-test parts only score: nothing is chosen on them. One JSON line per run and perturbation, one per run for the
-consensus and for PIPE and `nearest`, whose figures do not depend on the perturbation.
+normal draw of its own per perturbation and part; the free parameters are 0 at the neutral profile, of order 1
+at the random starts) moves the targets and gpr's test FIT(F) as far. Perturbation 0 is the evaluation's own
+neutral start. Each perturbation identifies the training parts in a fit cache of its own (`--fits`, perturbation
+0 in the folder itself; a fit from the neutral start draws nothing, so every run of a domain shares it), fits
+gpr as the evaluation does (its kernel chosen on the run's validation parts) and scores it on the run's test
+parts; `consensus` is gpr on the mean over the neutral start and the perturbations of each target (log
+profiles), a smoother target; `best` is gpr on each part's fit of the lowest objective among a group of
+`--best-of` perturbed draws (disjoint groups: draws 1 to N, N+1 to 2N, ...), the identification's own rule for
+choosing among starts, so that two groups tell whether that choice repeats where the draws differ, as a host's
+rounding would make them. The test parts only score: nothing is chosen on them. One JSON line per run and
+perturbation, one per run for the consensus and for PIPE and `nearest`, whose figures do not depend on the
+perturbation.
 Results: docs/experiments.md, "gpr's targets under a perturbed start".
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/gpr_targets.py OUT.jsonl runs/dsub/seed_{0,1,2}
@@ -26,6 +30,7 @@ import time
 import zlib
 from collections import defaultdict
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +40,9 @@ from omegaconf import OmegaConf
 from profile_pretraining import FITS
 from summarise import domain_of, read_rows, spread
 
+from pipe.data.preprocess import Profile
 from pipe.evaluation import identification
+from pipe.evaluation.compiled_objective import CompiledObjective
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
 from pipe.evaluation.methods import GPR, METHODS, model_forces
@@ -67,14 +74,30 @@ def perturbed_starts(eps: float, perturbation: int) -> Iterator[None]:
 
 
 @METHODS.register
-class ConsensusGPR(GPR):
-    """gpr on given targets (the mean over the perturbations' log profiles) instead of one identification's."""
+class GivenGPR(GPR):
+    """gpr on given targets (the perturbations' mean, or each part's best) instead of one identification's."""
 
-    name = "gpr_consensus"
+    name = "gpr_given"
     given: np.ndarray | None = None
 
     def targets(self, ctx):
         return self.given
+
+
+def given_gpr(ctx: EvalContext, test: list, targets: np.ndarray) -> float:
+    """gpr's test FIT(F) on these targets, fitted as the evaluation fits gpr."""
+    GivenGPR.given = targets
+    return evaluate_methods(ctx, test, ["gpr_given"])["gpr_given"].domain["fit_F"]
+
+
+def objective(ctx: EvalContext, part, identified) -> float:
+    """The identification's objective at a part's fit (what it keeps the lowest of), evaluated afresh."""
+    settings = identification.IdentificationSettings.from_config(ctx.settings["identification"])
+    trials = [Profile(p.time, p.depth, p.force) for p in part.profiles]
+    job = identification.part_jobs(ctx, part.name, trials, replace(settings, restarts=1))[0]
+    head = identified.model.head
+    values = torch.nn.utils.parameters_to_vector(head.parameters()).detach().double().numpy()
+    return CompiledObjective.of(job.model, head, job.batch, settings.ridge, settings.loss)(values)[0]
 
 
 def own_fit(ctx: EvalContext, part, identified) -> float:
@@ -83,7 +106,7 @@ def own_fit(ctx: EvalContext, part, identified) -> float:
     return float(np.mean([fit_percent(p.force, f) for p, f in zip(part.profiles, forces)]))
 
 
-def perturb_run(run: Path, out: str, eps: float, perturbations: int, fits: str) -> None:
+def perturb_run(run: Path, out: str, eps: float, perturbations: int, best_of: int, fits: str) -> None:
     candidate = kept_folder(run)
     cfg, data, components = load_run(candidate)
     load_encoder(components[0], candidate)
@@ -100,7 +123,7 @@ def perturb_run(run: Path, out: str, eps: float, perturbations: int, fits: str) 
 
     others = evaluate_methods(context(), test, ["pipe", "nearest"])
     append_row(out, {"run": str(run), "kind": "reference", **{m: r.domain["fit_F"] for m, r in others.items()}})
-    all_targets = []
+    all_targets, objectives = [], []
     for perturbation in range(perturbations + 1):
         start = time.perf_counter()
         ctx = context(perturbation)
@@ -109,27 +132,36 @@ def perturb_run(run: Path, out: str, eps: float, perturbations: int, fits: str) 
         targets = GPR().targets(ctx)     # the fits evaluate_methods made, from the context's cache
         all_targets.append(targets)
         fitted = identification.identify(ctx, train, restarts=1)
+        objectives.append([objective(ctx, p, f) for p, f in zip(train, fitted)])
         append_row(out, {"run": str(run), "kind": "perturbation", "perturbation": perturbation, "eps": eps,
                          "gpr": result.domain["fit_F"],
                          "test_parts": {p: m["fit_F"] for p, m in result.per_part.items()},
                          "length_scale": next(iter(result.per_part.values()))["gpr_length_scale"],
                          "own_fit": {p.name: own_fit(ctx, p, f) for p, f in zip(train, fitted)},
+                         "objective": dict(zip([p.name for p in train], objectives[-1])),
                          "targets": targets.tolist(), "seconds": time.perf_counter() - start})
-    ConsensusGPR.given = np.mean(all_targets, axis=0)
-    consensus = evaluate_methods(context(), test, ["gpr_consensus"])["gpr_consensus"]
     append_row(out, {"run": str(run), "kind": "consensus", "perturbations": perturbations, "eps": eps,
-                     "gpr": consensus.domain["fit_F"]})
+                     "gpr": given_gpr(context(), test, np.mean(all_targets, axis=0))})
+    for first in range(1, perturbations - best_of + 2, best_of):     # disjoint groups of perturbed draws
+        draws = list(range(first, first + best_of))
+        chosen = [min(draws, key=lambda d: objectives[d][i]) for i in range(len(train))]
+        targets = np.stack([all_targets[d][i] for i, d in enumerate(chosen)])
+        append_row(out, {"run": str(run), "kind": "best", "draws": draws, "eps": eps,
+                         "chosen": dict(zip([p.name for p in train], chosen)),
+                         "gpr": given_gpr(context(), test, targets)})
 
 
 def table(rows: list[dict]) -> str:
-    """Per domain: gpr's test FIT(F) at the neutral start and over the perturbed starts (mean ± std over the runs
-    of each run's mean; in brackets the lowest and highest single figure), the consensus, PIPE and `nearest`, and
-    how far the perturbed targets lie from the neutral start's (rms of the log profiles' difference, median over
-    the runs, parts and perturbations; in brackets the largest) and what they fit of their own part (the
-    largest drop of own FIT(F) from the neutral start's)."""
-    lines = ["| domain | PIPE | `nearest` | gpr, neutral start | gpr, perturbed starts (lowest, highest) | "
-             "gpr, consensus | targets' rms change (largest) | largest own-FIT(F) change |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    """Per domain: gpr's test FIT(F) at the neutral start and over the perturbed starts (mean ± std over the runs of
+    each run's mean; in brackets the std over a run's draws, averaged over the runs, and the lowest and highest
+    single figure), the consensus, PIPE and `nearest`, and gpr on each group's best fits, and how far the
+    perturbed targets lie from the neutral start's (rms of the log profiles' difference, median over the runs,
+    parts and perturbations; in brackets the largest) and what they fit of their own part (the largest drop of
+    own FIT(F) from the neutral start's)."""
+    lines = ["| domain | PIPE | `nearest` | gpr, neutral start | "
+             "gpr, perturbed starts (std over the draws; lowest, highest) | gpr, consensus | gpr, best of each group | "
+             "targets' rms change (largest) | largest own-FIT(F) change |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     by_domain: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     for row in rows:
         by_domain[domain_of(row["run"])][row["kind"]].append(row)
@@ -147,11 +179,17 @@ def table(rows: list[dict]) -> str:
                 changes.extend(np.sqrt(np.mean(difference**2, axis=1)))
                 own.extend(r["own_fit"][p] - base["own_fit"][p] for p in base["own_fit"])
         perturbed = spread([statistics.fmean(r["gpr"] for r in rs) for rs in moved])
+        within = statistics.fmean(statistics.stdev(r["gpr"] for r in rs) if len(rs) > 1 else 0.0 for rs in moved)
+        groups = defaultdict(list)
+        for row in kinds["best"]:
+            groups[tuple(row["draws"])].append(row["gpr"])
+        best = "; ".join(f"{spread(v)} (draws {k[0]}-{k[-1]})" for k, v in groups.items()) or "-"
         lines.append(
             f"| {domain} | {spread([r['pipe'] for r in kinds['reference']])} | "
             f"{spread([r['nearest'] for r in kinds['reference']])} | {spread([r['gpr'] for r in neutral])} | "
-            f"{perturbed} ({min(single):.2f}, {max(single):.2f}) | {spread([r['gpr'] for r in kinds['consensus']])} | "
-            f"{statistics.median(changes):.3f} ({max(changes):.3f}) | {max(own, key=abs):+.2f} |")
+            f"{perturbed} ({within:.2f}; {min(single):.2f}, {max(single):.2f}) | "
+            f"{spread([r['gpr'] for r in kinds['consensus']])} | "
+            f"{best} | {statistics.median(changes):.3f} ({max(changes):.3f}) | {max(own, key=abs):+.2f} |")
     return "\n".join(lines)
 
 
@@ -162,13 +200,15 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--eps", type=float, default=1e-6, help="size of the start's perturbation (default 1e-6)")
     ap.add_argument("--perturbations", type=int, default=4, help="perturbed starts per run (default 4)")
+    ap.add_argument("--best-of", type=int, default=4, help="perturbed draws per group whose lowest objective "
+                    "per part gives gpr's `best` targets (default 4)")
     ap.add_argument("--fits", default=FITS, help="folder for the identified profiles (relative: to the project root)")
     args = ap.parse_args()
     if args.table:
         print(table(read_rows(args.out)))
         return
     for run in args.runs:
-        perturb_run(Path(run), args.out, args.eps, args.perturbations, args.fits)
+        perturb_run(Path(run), args.out, args.eps, args.perturbations, args.best_of, args.fits)
 
 
 if __name__ == "__main__":

@@ -381,11 +381,15 @@ def test_gpr_targets_neutral_start_is_the_runs_gpr_and_a_perturbed_start_moves_t
         assert row[method] == pytest.approx(trained_run.results[method].domain["fit_F"], abs=1e-9), method
     assert unmoved["targets"] == neutral["targets"] and unmoved["gpr"] == neutral["gpr"]
     assert consensus["gpr"] == pytest.approx(neutral["gpr"], abs=1e-6)
-    run_script("gpr_targets.py", str(moved_file), str(trained_run.run_dir), "--perturbations", "1", "--eps", "0.3",
-               "--fits", fits)
-    _, again, moved, _ = [json.loads(line) for line in moved_file.read_text().splitlines()]
+    run_script("gpr_targets.py", str(moved_file), str(trained_run.run_dir), "--perturbations", "2", "--eps", "0.3",
+               "--best-of", "1", "--fits", fits)
+    _, again, *moved, _, best_first, best_second = [json.loads(line) for line in moved_file.read_text().splitlines()]
     assert again["targets"] == neutral["targets"]          # the neutral start's fits, read from the cache
-    assert moved["targets"] != neutral["targets"]
+    assert all(row["targets"] != neutral["targets"] for row in moved) and moved[0]["targets"] != moved[1]["targets"]
+    # a group of one draw is that draw's gpr
+    assert (best_first["draws"], best_second["draws"]) == ([1], [2])
+    assert best_first["gpr"] == pytest.approx(moved[0]["gpr"], abs=1e-6)
+    assert best_second["gpr"] == pytest.approx(moved[1]["gpr"], abs=1e-6)
     table = run_script("gpr_targets.py", str(moved_file), "--table")
     assert f"| {neutral['gpr']:.2f} ± 0.00 |" in table
 
