@@ -8,8 +8,10 @@ at the random starts) moves the targets and gpr's test FIT(F) as far. Perturbati
 neutral start. Each perturbation identifies the training parts in a fit cache of its own (`--fits`, perturbation
 0 in the folder itself; a fit from the neutral start draws nothing, so every run of a domain shares it), fits
 gpr as the evaluation does (its kernel chosen on the run's validation parts) and scores it on the run's test
-parts; `consensus` is gpr on the mean over the neutral start and the perturbations of each target (log
-profiles), a smoother target; `best` is gpr on each part's fit of the lowest objective among a group of
+parts; `gpr_1se` is gpr with its kernel chosen on the validation parts by the one-standard-error rule the
+baselines choose their input by (the likelihood optimum unless another kernel is clearly better), scored on
+every draw's targets; `consensus` is gpr on the mean over the neutral start and the perturbations of each target
+(log profiles), a smoother target; `best` is gpr on each part's fit of the lowest objective among a group of
 `--best-of` perturbed draws (disjoint groups: draws 1 to N, N+1 to 2N, ...), the identification's own rule for
 choosing among starts, so that two groups tell whether that choice repeats where the draws differ, as a host's
 rounding would make them. The test parts only score: nothing is chosen on them. One JSON line per run and
@@ -45,7 +47,7 @@ from pipe.evaluation import identification
 from pipe.evaluation.compiled_objective import CompiledObjective
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
-from pipe.evaluation.methods import GPR, METHODS, model_forces
+from pipe.evaluation.methods import GPR, METHODS, model_forces, one_standard_error_choice, validation_errors
 from pipe.evaluation.metrics import fit_percent
 from pipe.pipeline import build_model, latent_codes
 
@@ -82,6 +84,21 @@ class GivenGPR(GPR):
 
     def targets(self, ctx):
         return self.given
+
+
+@METHODS.register
+class OneStandardErrorGPR(GPR):
+    """gpr whose kernel the validation parts choose as the baselines choose their input: the likelihood optimum
+    unless another kernel beats it by more than one standard error (`one_standard_error_choice`)."""
+
+    name = "gpr_1se"
+
+    def validation_choice(self, ctx, fitted):
+        errors = []
+        for gp in fitted:
+            self.gp = gp
+            errors.append(validation_errors(self, ctx))
+        return one_standard_error_choice(errors)
 
 
 def given_gpr(ctx: EvalContext, test: list, targets: np.ndarray) -> float:
@@ -128,13 +145,14 @@ def perturb_run(run: Path, out: str, eps: float, perturbations: int, best_of: in
         start = time.perf_counter()
         ctx = context(perturbation)
         with perturbed_starts(eps, perturbation):
-            result = evaluate_methods(ctx, test, ["gpr"])["gpr"]
+            results = evaluate_methods(ctx, test, ["gpr", "gpr_1se"])
+        result = results["gpr"]
         targets = GPR().targets(ctx)     # the fits evaluate_methods made, from the context's cache
         all_targets.append(targets)
         fitted = identification.identify(ctx, train, restarts=1)
         objectives.append([objective(ctx, p, f) for p, f in zip(train, fitted)])
         append_row(out, {"run": str(run), "kind": "perturbation", "perturbation": perturbation, "eps": eps,
-                         "gpr": result.domain["fit_F"],
+                         "gpr": result.domain["fit_F"], "gpr_1se": results["gpr_1se"].domain["fit_F"],
                          "test_parts": {p: m["fit_F"] for p, m in result.per_part.items()},
                          "length_scale": next(iter(result.per_part.values()))["gpr_length_scale"],
                          "own_fit": {p.name: own_fit(ctx, p, f) for p, f in zip(train, fitted)},
@@ -151,17 +169,29 @@ def perturb_run(run: Path, out: str, eps: float, perturbations: int, best_of: in
                          "gpr": given_gpr(context(), test, targets)})
 
 
+def over_draws(neutral: list[dict], moved: list[list[dict]], column: str) -> str:
+    """Two cells: the column at the neutral start over the runs, and over the perturbed draws the runs' means
+    (in brackets the std over a run's draws, averaged over the runs, and the lowest and highest figure)."""
+    if any(column not in r for r in neutral):
+        return "- | -"
+    single = [r[column] for rs in moved for r in rs]
+    within = statistics.fmean(statistics.stdev(r[column] for r in rs) if len(rs) > 1 else 0.0 for rs in moved)
+    means = [statistics.fmean(r[column] for r in rs) for rs in moved]
+    return (f"{spread([r[column] for r in neutral])} | "
+            f"{spread(means)} ({within:.2f}; {min(single):.2f}, {max(single):.2f})")
+
+
 def table(rows: list[dict]) -> str:
     """Per domain: gpr's test FIT(F) at the neutral start and over the perturbed starts (mean ± std over the runs of
     each run's mean; in brackets the std over a run's draws, averaged over the runs, and the lowest and highest
-    single figure), the consensus, PIPE and `nearest`, and gpr on each group's best fits, and how far the
-    perturbed targets lie from the neutral start's (rms of the log profiles' difference, median over the runs,
-    parts and perturbations; in brackets the largest) and what they fit of their own part (the largest drop of
-    own FIT(F) from the neutral start's)."""
+    single figure), the consensus, PIPE and `nearest`, and gpr on each group's best fits, `gpr_1se` (the kernel
+    chosen by the one-standard-error rule) as gpr, and how far the perturbed targets lie from the neutral
+    start's (rms of the log profiles' difference, median over the runs, parts and perturbations; in brackets the
+    largest) and what they fit of their own part (the largest drop of own FIT(F) from the neutral start's)."""
     lines = ["| domain | PIPE | `nearest` | gpr, neutral start | "
              "gpr, perturbed starts (std over the draws; lowest, highest) | gpr, consensus | gpr, best of each group | "
-             "targets' rms change (largest) | largest own-FIT(F) change |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "gpr_1se, neutral start | gpr_1se, perturbed starts | targets' rms change (largest) | "
+             "largest own-FIT(F) change |", "| --- |" + " --- |" * 10]
     by_domain: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     for row in rows:
         by_domain[domain_of(row["run"])][row["kind"]].append(row)
@@ -171,25 +201,21 @@ def table(rows: list[dict]) -> str:
             runs[row["run"]].append(row)
         neutral = [next(r for r in rs if r["perturbation"] == 0) for rs in runs.values()]
         moved = [[r for r in rs if r["perturbation"] > 0] for rs in runs.values()]
-        single = [r["gpr"] for rs in moved for r in rs]
         changes, own = [], []
         for base, others in zip(neutral, moved):
             for r in others:
                 difference = np.asarray(r["targets"]) - np.asarray(base["targets"])
                 changes.extend(np.sqrt(np.mean(difference**2, axis=1)))
                 own.extend(r["own_fit"][p] - base["own_fit"][p] for p in base["own_fit"])
-        perturbed = spread([statistics.fmean(r["gpr"] for r in rs) for rs in moved])
-        within = statistics.fmean(statistics.stdev(r["gpr"] for r in rs) if len(rs) > 1 else 0.0 for rs in moved)
         groups = defaultdict(list)
         for row in kinds["best"]:
             groups[tuple(row["draws"])].append(row["gpr"])
         best = "; ".join(f"{spread(v)} (draws {k[0]}-{k[-1]})" for k, v in groups.items()) or "-"
         lines.append(
             f"| {domain} | {spread([r['pipe'] for r in kinds['reference']])} | "
-            f"{spread([r['nearest'] for r in kinds['reference']])} | {spread([r['gpr'] for r in neutral])} | "
-            f"{perturbed} ({within:.2f}; {min(single):.2f}, {max(single):.2f}) | "
-            f"{spread([r['gpr'] for r in kinds['consensus']])} | "
-            f"{best} | {statistics.median(changes):.3f} ({max(changes):.3f}) | {max(own, key=abs):+.2f} |")
+            f"{spread([r['nearest'] for r in kinds['reference']])} | {over_draws(neutral, moved, 'gpr')} | "
+            f"{spread([r['gpr'] for r in kinds['consensus']])} | {best} | {over_draws(neutral, moved, 'gpr_1se')} | "
+            f"{statistics.median(changes):.3f} ({max(changes):.3f}) | {max(own, key=abs):+.2f} |")
     return "\n".join(lines)
 
 

@@ -380,6 +380,7 @@ def test_gpr_targets_neutral_start_is_the_runs_gpr_and_a_perturbed_start_moves_t
     for method, row in (("pipe", reference), ("nearest", reference), ("gpr", neutral)):
         assert row[method] == pytest.approx(trained_run.results[method].domain["fit_F"], abs=1e-9), method
     assert unmoved["targets"] == neutral["targets"] and unmoved["gpr"] == neutral["gpr"]
+    assert unmoved["gpr_1se"] == neutral["gpr_1se"] and math.isfinite(neutral["gpr_1se"])
     assert consensus["gpr"] == pytest.approx(neutral["gpr"], abs=1e-6)
     run_script("gpr_targets.py", str(moved_file), str(trained_run.run_dir), "--perturbations", "2", "--eps", "0.3",
                "--best-of", "1", "--fits", fits)

@@ -341,15 +341,20 @@ class GPR(CodeBaseline):
             kernels = kernels[:1]
         fitted = [self.regressor(kernel, ctx.seed).fit(inputs, outputs) for kernel in kernels]
         if ctx.val:                 # the kernel of the lowest validation error
-            scores = []
-            for gp in fitted:
-                self.gp = gp
-                scores.append(validation_nmse(self, ctx))
+            self.gp = fitted[self.validation_choice(ctx, fitted)]
         else:                       # or of the lowest error on each training part left out in turn
             scores = [self.leave_one_out_nmse(ctx, kernel, inputs, outputs) if len(kernels) > 1 else 0.0
                       for kernel in kernels]
-        self.gp = fitted[int(np.argmin(scores))]
+            self.gp = fitted[int(np.argmin(scores))]
         self.length_scale = float(self.gp.kernel_.k1.k2.length_scale) / np.sqrt(x.shape[1])
+
+    def validation_choice(self, ctx: EvalContext, fitted: list[GaussianProcessRegressor]) -> int:
+        """Which fitted kernel to keep: the one of the lowest mean validation NMSE."""
+        scores = []
+        for gp in fitted:
+            self.gp = gp
+            scores.append(validation_nmse(self, ctx))
+        return int(np.argmin(scores))
 
     @staticmethod
     def regressor(kernel, seed: int) -> GaussianProcessRegressor:
