@@ -22,7 +22,6 @@ Usage (one thread, as the results were measured):
 """
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import statistics
@@ -32,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from candidate_ensemble import fit
-from common import append_row, kept_folder, two_candidates
+from common import append_row, kept_folder, rows_parser, two_candidates
 from omegaconf import OmegaConf
 from part_cv import fold_models
 from profile_pretraining import FITS
@@ -154,10 +153,7 @@ def paired_table(rows: list[dict]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
-    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py with two force-weight candidates")
-    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap = rows_parser(__doc__, "finished seed folders of train.py with two force-weight candidates")
     ap.add_argument("--test", metavar="ROWS", help="with --table: candidate_ensemble.py's rows of the same runs; "
                     "adds the test parts' FIT(F) of the candidate the cross-validation prefers")
     ap.add_argument("--fits", default=FITS, help="folder for gpr's identified profiles (relative: to the project "

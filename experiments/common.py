@@ -3,6 +3,7 @@ scoring of PIPE and `nearest` on its validation and test parts, appended as one 
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -122,6 +123,16 @@ def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIP
             row["test_parts"] = {name: {part: metrics["fit_F"] for part, metrics in result.per_part.items()}
                                  for name, result in found.items()}
     append_row(out, row)
+
+
+def rows_parser(doc: str, runs_help: str = "finished seed folders of train.py") -> argparse.ArgumentParser:
+    """The command line the scripts that append result rows share: OUT (the JSON lines file, read with --table),
+    the runs to append rows of, and --table to print OUT's table instead."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
+    ap.add_argument("runs", nargs="*", help=runs_help)
+    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    return ap
 
 
 def append_row(out: str, row: dict) -> None:

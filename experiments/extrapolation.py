@@ -22,7 +22,6 @@ Usage:
 """
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 from collections import defaultdict
@@ -30,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import append_row, kept_folder, load_encoder, load_run, results
+from common import append_row, kept_folder, load_encoder, load_run, results, rows_parser
 from part_cv import fold_models
 from profile_pretraining import FITS
 from stage2_variants import parse_variant
@@ -100,11 +99,8 @@ def force_summary(forces: list[np.ndarray]) -> dict[str, float]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
-    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
+    ap = rows_parser(__doc__)
     ap.add_argument("--cv", metavar="FILE", help="part_cv.py's rows of these runs (their `default` variant)")
-    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--forces", nargs="+", metavar="PART", help="the named held-out parts' forces instead")
     args = ap.parse_args()
     if args.table:

@@ -16,7 +16,6 @@ Usage (one thread, as the results were measured):
 """
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import statistics
@@ -25,7 +24,7 @@ from collections import defaultdict
 from dataclasses import replace
 from pathlib import Path
 
-from common import append_row, kept_folder, load_encoder, load_run
+from common import append_row, kept_folder, load_encoder, load_run, rows_parser
 from omegaconf import OmegaConf
 from profile_pretraining import FITS
 from summarise import domain_of, read_rows, spread
@@ -122,10 +121,7 @@ def paired(rows: list[dict], pipe_rows: list[dict]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
-    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
-    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap = rows_parser(__doc__)
     ap.add_argument("--fits", default=FITS, help="folder for gpr's identified profiles (relative: to the project "
                     "root)")
     ap.add_argument("--pipe", metavar="ROWS", help="with --table: part_cv.py's rows of the same runs; adds PIPE "

@@ -8,10 +8,11 @@ at the random starts) moves the targets and gpr's test FIT(F) as far. Perturbati
 neutral start. Each perturbation identifies the training parts in a fit cache of its own (`--fits`, perturbation
 0 in the folder itself; a fit from the neutral start draws nothing, so every run of a domain shares it), fits
 gpr as the evaluation does (its kernel chosen on the run's validation parts) and scores it on the run's test
-parts; `gpr_1se` is gpr with its kernel chosen on the validation parts by the one-standard-error rule the
-baselines choose their input by (the likelihood optimum unless another kernel is clearly better), scored on
-every draw's targets; `consensus` is gpr on the mean over the neutral start and the perturbations of each target
-(log profiles), a smoother target; `best` is gpr on each part's fit of the lowest objective among a group of
+parts; `gpr_grid` is gpr choosing among the fixed length scales only, without the likelihood's optimum;
+`gpr_1se` is gpr with its kernel chosen on the validation parts by the one-standard-error rule the baselines
+choose their input by (the likelihood optimum unless another kernel is clearly better), scored on every draw's
+targets; `consensus` is gpr on the mean over the neutral start and the perturbations of each target (log
+profiles), a smoother target; `best` is gpr on each part's fit of the lowest objective among a group of
 `--best-of` perturbed draws (disjoint groups: draws 1 to N, N+1 to 2N, ...), the identification's own rule for
 choosing among starts, so that two groups tell whether that choice repeats where the draws differ, as a host's
 rounding would make them. The test parts only score: nothing is chosen on them. One JSON line per run and
@@ -24,7 +25,6 @@ Usage (one thread, as the results were measured):
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import os
 import statistics
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import append_row, kept_folder, load_encoder, load_head_stage, load_run
+from common import append_row, kept_folder, load_encoder, load_head_stage, load_run, rows_parser
 from omegaconf import OmegaConf
 from profile_pretraining import FITS
 from summarise import domain_of, read_rows, spread
@@ -101,6 +101,20 @@ class OneStandardErrorGPR(GPR):
         return one_standard_error_choice(errors)
 
 
+@METHODS.register
+class GridGPR(GPR):
+    """gpr choosing among the fixed length scales alone (`GPR.LENGTH_SCALES`), without the likelihood's optimum."""
+
+    name = "gpr_grid"
+
+    @staticmethod
+    def kernels(dims: int) -> list:
+        return GPR.kernels(dims)[1:]
+
+
+VARIANTS = ("gpr_1se", "gpr_grid")     # scored on every draw's targets beside gpr
+
+
 def given_gpr(ctx: EvalContext, test: list, targets: np.ndarray) -> float:
     """gpr's test FIT(F) on these targets, fitted as the evaluation fits gpr."""
     GivenGPR.given = targets
@@ -145,14 +159,14 @@ def perturb_run(run: Path, out: str, eps: float, perturbations: int, best_of: in
         start = time.perf_counter()
         ctx = context(perturbation)
         with perturbed_starts(eps, perturbation):
-            results = evaluate_methods(ctx, test, ["gpr", "gpr_1se"])
+            results = evaluate_methods(ctx, test, ["gpr", *VARIANTS])
         result = results["gpr"]
         targets = GPR().targets(ctx)     # the fits evaluate_methods made, from the context's cache
         all_targets.append(targets)
         fitted = identification.identify(ctx, train, restarts=1)
         objectives.append([objective(ctx, p, f) for p, f in zip(train, fitted)])
         append_row(out, {"run": str(run), "kind": "perturbation", "perturbation": perturbation, "eps": eps,
-                         "gpr": result.domain["fit_F"], "gpr_1se": results["gpr_1se"].domain["fit_F"],
+                         "gpr": result.domain["fit_F"], **{v: results[v].domain["fit_F"] for v in VARIANTS},
                          "test_parts": {p: m["fit_F"] for p, m in result.per_part.items()},
                          "length_scale": next(iter(result.per_part.values()))["gpr_length_scale"],
                          "own_fit": {p.name: own_fit(ctx, p, f) for p, f in zip(train, fitted)},
@@ -184,14 +198,14 @@ def over_draws(neutral: list[dict], moved: list[list[dict]], column: str) -> str
 def table(rows: list[dict]) -> str:
     """Per domain: gpr's test FIT(F) at the neutral start and over the perturbed starts (mean ± std over the runs of
     each run's mean; in brackets the std over a run's draws, averaged over the runs, and the lowest and highest
-    single figure), the consensus, PIPE and `nearest`, and gpr on each group's best fits, `gpr_1se` (the kernel
-    chosen by the one-standard-error rule) as gpr, and how far the perturbed targets lie from the neutral
-    start's (rms of the log profiles' difference, median over the runs, parts and perturbations; in brackets the
-    largest) and what they fit of their own part (the largest drop of own FIT(F) from the neutral start's)."""
+    single figure), the consensus, PIPE and `nearest`, and gpr on each group's best fits, each of VARIANTS as
+    gpr, and how far the perturbed targets lie from the neutral start's (rms of the log profiles' difference,
+    median over the runs, parts and perturbations; in brackets the largest) and what they fit of their own part
+    (the largest drop of own FIT(F) from the neutral start's)."""
     lines = ["| domain | PIPE | `nearest` | gpr, neutral start | "
              "gpr, perturbed starts (std over the draws; lowest, highest) | gpr, consensus | gpr, best of each group | "
-             "gpr_1se, neutral start | gpr_1se, perturbed starts | targets' rms change (largest) | "
-             "largest own-FIT(F) change |", "| --- |" + " --- |" * 10]
+             + "".join(f"{v}, neutral start | {v}, perturbed starts | " for v in VARIANTS)
+             + "targets' rms change (largest) | largest own-FIT(F) change |", "| --- |" + " --- |" * 12]
     by_domain: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     for row in rows:
         by_domain[domain_of(row["run"])][row["kind"]].append(row)
@@ -214,16 +228,14 @@ def table(rows: list[dict]) -> str:
         lines.append(
             f"| {domain} | {spread([r['pipe'] for r in kinds['reference']])} | "
             f"{spread([r['nearest'] for r in kinds['reference']])} | {over_draws(neutral, moved, 'gpr')} | "
-            f"{spread([r['gpr'] for r in kinds['consensus']])} | {best} | {over_draws(neutral, moved, 'gpr_1se')} | "
-            f"{statistics.median(changes):.3f} ({max(changes):.3f}) | {max(own, key=abs):+.2f} |")
+            f"{spread([r['gpr'] for r in kinds['consensus']])} | {best} | "
+            + "".join(f"{over_draws(neutral, moved, v)} | " for v in VARIANTS)
+            + f"{statistics.median(changes):.3f} ({max(changes):.3f}) | {max(own, key=abs):+.2f} |")
     return "\n".join(lines)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
-    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
-    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap = rows_parser(__doc__)
     ap.add_argument("--eps", type=float, default=1e-6, help="size of the start's perturbation (default 1e-6)")
     ap.add_argument("--perturbations", type=int, default=4, help="perturbed starts per run (default 4)")
     ap.add_argument("--best-of", type=int, default=4, help="perturbed draws per group whose lowest objective "

@@ -22,7 +22,6 @@ Usage (one thread, as the results were measured):
 """
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import tempfile
@@ -31,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 from candidate_ensemble import fit
-from common import append_row, kept_folder, load_encoder, load_run
+from common import append_row, kept_folder, load_encoder, load_run, rows_parser
 from part_cv import fold_models
 from profile_pretraining import FITS
 from stage2_variants import parse_variant, variant_head
@@ -116,11 +115,8 @@ def table(rows: list[dict]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
-    ap.add_argument("runs", nargs="*", help="finished seed folders of train.py")
+    ap = rows_parser(__doc__)
     ap.add_argument("--heads", type=int, default=5, help="members of the ensemble, the run's own head among them")
-    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--own-split", action="store_true", help="train on the run's own split and score its "
                     "validation and test parts instead of the cross-validation")
     args = ap.parse_args()
