@@ -75,7 +75,6 @@ def perturbed_starts(eps: float, perturbation: int) -> Iterator[None]:
         identification.start_head = NEUTRAL_START
 
 
-@METHODS.register
 class GivenGPR(GPR):
     """gpr on given targets (the perturbations' mean, or each part's best) instead of one identification's."""
 
@@ -86,7 +85,6 @@ class GivenGPR(GPR):
         return self.given
 
 
-@METHODS.register
 class OneStandardErrorGPR(GPR):
     """gpr whose kernel the validation parts choose as the baselines choose their input: the likelihood optimum
     unless another kernel beats it by more than one standard error (`one_standard_error_choice`)."""
@@ -101,7 +99,6 @@ class OneStandardErrorGPR(GPR):
         return one_standard_error_choice(errors)
 
 
-@METHODS.register
 class GridGPR(GPR):
     """gpr choosing among the fixed length scales alone (`GPR.LENGTH_SCALES`), without the likelihood's optimum."""
 
@@ -242,6 +239,8 @@ def main() -> None:
                     "per part gives gpr's `best` targets (default 4)")
     ap.add_argument("--fits", default=FITS, help="folder for the identified profiles (relative: to the project root)")
     args = ap.parse_args()
+    for variant in (GivenGPR, OneStandardErrorGPR, GridGPR):   # registered when the script runs, not on import
+        METHODS.register(variant)
     if args.table:
         print(table(read_rows(args.out)))
         return

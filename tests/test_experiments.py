@@ -345,11 +345,15 @@ def test_gpr_targets_perturbations_move_the_neutral_start_alone_each_by_a_draw_o
     import torch
     from conftest import compose_config
 
+    from pipe.evaluation import identification
+    from pipe.evaluation.methods import METHODS
+    from pipe.pipeline import build_components
+
+    registered = list(METHODS)
     sys.path.insert(0, str(ROOT / "experiments"))
     from gpr_targets import NEUTRAL_START, perturbed_starts
 
-    from pipe.evaluation import identification
-    from pipe.pipeline import build_components
+    assert list(METHODS) == registered     # its gpr variants register when it runs: test_registry counts them
 
     head = build_components(compose_config([]))[1]
 
