@@ -16,8 +16,8 @@ profiles), a smoother target; `best` is gpr on each part's fit of the lowest obj
 `--best-of` perturbed draws (disjoint groups: draws 1 to N, N+1 to 2N, ...), the identification's own rule for
 choosing among starts, so that two groups tell whether that choice repeats where the draws differ, as a host's
 rounding would make them. The test parts only score: nothing is chosen on them. One JSON line per run and
-perturbation, one per run for the consensus and for PIPE and `nearest`, whose figures do not depend on the
-perturbation.
+perturbation, one per run and group of draws for `best`, one per run for the consensus and for PIPE and
+`nearest`, whose figures do not depend on the perturbation.
 Results: docs/experiments.md, "gpr's targets under a perturbed start".
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/gpr_targets.py OUT.jsonl runs/dsub/seed_{0,1,2}
