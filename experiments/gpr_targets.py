@@ -5,8 +5,10 @@ code gave gpr other figures on two AMD hosts while PIPE and `nearest` repeated t
 script measures on one host whether a start moved by `--eps` (each free parameter plus eps times a standard
 normal draw of its own per perturbation and part; the free parameters are 0 at the neutral profile, of order 1
 at the random starts) moves the targets and gpr's test FIT(F) as far. Perturbation 0 is the evaluation's own
-neutral start. Each perturbation identifies the training parts in a fit cache of its own (`--fits`, perturbation
-0 in the folder itself; a fit from the neutral start draws nothing, so every run of a domain shares it), fits
+neutral start: since 2026-12-02 the neutral profile moved by `evaluation.identification.neutral_jitter` with a
+draw of the run's seed (the perturbations move it further), before then the neutral profile itself, which
+`--neutral-jitter 0` gives (how the committed rows were measured). Each perturbation identifies the training
+parts in a fit cache of its own (`--fits`, perturbation 0 in the folder itself), fits
 gpr as the evaluation does (its kernel chosen on the run's validation parts) and scores it on the run's test
 parts; `gpr_grid` is gpr choosing among the fixed length scales only, without the likelihood's optimum;
 `gpr_1se` is gpr with its kernel chosen on the validation parts by the one-standard-error rule the baselines
@@ -20,7 +22,8 @@ perturbation, one per run and group of draws for `best`, one per run for the con
 `nearest`, whose figures do not depend on the perturbation.
 Results: docs/experiments.md, "gpr's targets under a perturbed start".
 Usage (one thread, as the results were measured):
-  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/gpr_targets.py OUT.jsonl runs/dsub/seed_{0,1,2}
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/gpr_targets.py OUT.jsonl runs/dsub/seed_{0,1,2} \
+      --neutral-jitter 0
   python experiments/gpr_targets.py OUT.jsonl --table
 """
 from __future__ import annotations
@@ -57,9 +60,10 @@ NEUTRAL_START = identification.start_head
 @contextlib.contextmanager
 def perturbed_starts(eps: float, perturbation: int) -> Iterator[None]:
     """Every neutral start (start 0) moved by eps times a standard normal draw per free parameter, from a
-    generator of its own per perturbation and part; perturbation 0 leaves the starts as they are."""
-    def start_head(template, name: str, seed: int, start: int):
-        head = NEUTRAL_START(template, name, seed, start)
+    generator of its own per perturbation and part, on top of the identification's own jitter; perturbation
+    0 leaves the starts as they are."""
+    def start_head(template, name: str, seed: int, start: int, jitter: float = 0.0):
+        head = NEUTRAL_START(template, name, seed, start, jitter)
         if start == 0 and perturbation > 0:
             entropy = np.random.SeedSequence([perturbation, zlib.crc32(name.encode())]).generate_state(1)[0]
             generator = torch.Generator().manual_seed(int(entropy))     # torch keeps 32 bits of a seed
@@ -134,7 +138,8 @@ def own_fit(ctx: EvalContext, part, identified) -> float:
     return float(np.mean([fit_percent(p.force, f) for p, f in zip(part.profiles, forces)]))
 
 
-def perturb_run(run: Path, out: str, eps: float, perturbations: int, best_of: int, fits: str) -> None:
+def perturb_run(run: Path, out: str, eps: float, perturbations: int, best_of: int, fits: str,
+                neutral_jitter: float | None) -> None:
     candidate = kept_folder(run)
     cfg, data, components = load_run(candidate)
     load_encoder(components[0], candidate)
@@ -143,6 +148,8 @@ def perturb_run(run: Path, out: str, eps: float, perturbations: int, best_of: in
     model.eval()
     latents, _, index = latent_codes(model, data)
     settings = OmegaConf.to_container(cfg.evaluation, resolve=True)
+    if neutral_jitter is not None:
+        settings["identification"]["neutral_jitter"] = neutral_jitter
     train, val, test = data.splits["train"], data.splits["val"], data.splits["test"]
 
     def context(perturbation: int = 0) -> EvalContext:
@@ -237,6 +244,8 @@ def main() -> None:
     ap.add_argument("--perturbations", type=int, default=4, help="perturbed starts per run (default 4)")
     ap.add_argument("--best-of", type=int, default=4, help="perturbed draws per group whose lowest objective "
                     "per part gives gpr's `best` targets (default 4)")
+    ap.add_argument("--neutral-jitter", type=float, default=None, help="the evaluation's jitter of the neutral "
+                    "start (evaluation.identification.neutral_jitter; default: the run's; 0: the neutral profile)")
     ap.add_argument("--fits", default=FITS, help="folder for the identified profiles (relative: to the project root)")
     args = ap.parse_args()
     for variant in (GivenGPR, OneStandardErrorGPR, GridGPR):   # registered when the script runs, not on import
@@ -245,7 +254,7 @@ def main() -> None:
         print(table(read_rows(args.out)))
         return
     for run in args.runs:
-        perturb_run(Path(run), args.out, args.eps, args.perturbations, args.best_of, args.fits)
+        perturb_run(Path(run), args.out, args.eps, args.perturbations, args.best_of, args.fits, args.neutral_jitter)
 
 
 if __name__ == "__main__":

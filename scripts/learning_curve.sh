@@ -3,7 +3,7 @@
 # number of training parts (5, 10, 20, 50, 100) on the fixed 20 test and 10 validation parts of
 # conf/domain/curve.yaml, every run in MLflow, then the table and figure of `pipe report curve`.
 # The runs share one folder of identified fits (OUT/identification_fits): the oracles of the test parts and
-# gpr's fits of the training parts are computed once, not at every size and seed. It can be stopped and
+# gpr's fits of the training parts are computed once per seed, not again at every size. It can be stopped and
 # started again: a run whose results.json exists is kept, an unfinished one is continued from its
 # checkpoints (resume=) or, without any, started over. FAMILIES
 # chooses the families (default "pins rect"), e.g. to run them one after the other on separate days or

@@ -19,7 +19,7 @@ from pipe.errors import PipeError
 from pipe.evaluation import identification
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
-from pipe.evaluation.identification import identify, start_head
+from pipe.evaluation.identification import IdentificationSettings, identify, start_head
 from pipe.evaluation.methods import METHODS, code_inputs, one_standard_error_choice, validation_errors, validation_nmse
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SECTION_SIZE, SectionCode
@@ -336,17 +336,30 @@ def test_identifying_parts_together_equals_one_by_one(ctx):
 
 
 def test_each_start_draws_its_own_random_profile():
-    """Start 0 is the neutral profile; a random start depends on the seed, the start and the part's name
-    alone (torch's generator keeps only 32 bits of a seed: seeds that differ above them must still differ)."""
+    """Start 0 is the neutral profile, moved by `jitter` times a standard normal draw; a random start and the
+    jitter's draw depend on the seed, the start and the part's name alone (torch's generator keeps only 32
+    bits of a seed: seeds that differ above them must still differ)."""
     head = GaussianHead(32, 4)
 
-    def values(name, seed, start):
-        return torch.cat([p.detach().ravel() for p in start_head(head, name, seed, start).parameters()])
+    def values(name, seed, start, jitter=0.0):
+        return torch.cat([p.detach().ravel() for p in start_head(head, name, seed, start, jitter).parameters()])
 
     assert torch.equal(values("a", 0, 0), torch.zeros_like(values("a", 0, 0)))
     assert torch.equal(values("a", 0, 1), values("a", 0, 1))
     for other in (values("a", 0, 2), values("a", 1, 1), values("b", 0, 1)):
         assert not torch.allclose(values("a", 0, 1), other)
+    jittered = values("a", 0, 0, 1e-6)
+    assert torch.equal(values("a", 0, 0, 1e-6), jittered)
+    assert 0.5 < float(jittered.std() / 1e-6) < 1.5 and jittered.abs().max() < 1e-5     # 1e-6 x N(0, 1)
+    for other in (values("a", 1, 0, 1e-6), values("b", 0, 0, 1e-6), values("a", 2**40, 0, 1e-6)):
+        assert not torch.equal(jittered, other)
+    assert torch.equal(values("a", 0, 1, 1e-6), values("a", 0, 1))     # a random start takes no jitter
+
+
+def test_a_negative_or_non_numeric_jitter_is_refused_naming_the_option():
+    for bad in (-1e-6, "small"):
+        with pytest.raises(PipeError, match="evaluation.identification.neutral_jitter must be a number, 0 or more"):
+            IdentificationSettings.from_config({"neutral_jitter": bad})
 
 
 def test_the_ridge_pulls_the_identified_profiles_towards_the_neutral_one(ctx):

@@ -177,3 +177,22 @@ def test_the_compiled_fit_keeps_its_lowest_finite_objective_past_non_finite_step
     assert fit.objective == lowest < seen[0][0]      # kept the lowest finite, below the start
     kept = torch.nn.utils.parameters_to_vector(free.parameters()).double().numpy()
     np.testing.assert_allclose(kept, where, rtol=1e-6, atol=1e-6)
+
+
+def test_the_neutral_profile_is_flat_in_the_sections_and_widths_and_its_jittered_start_is_not():
+    """Why the neutral start is jittered (`neutral_jitter`): there every amplitude is 1, so each profile is 1 at
+    every depth whatever the sections and widths, and the objective's gradient in them is zero (autograd, float64)
+    but for rounding; L-BFGS-B's first steps followed that rounding. A start moved by 1e-6 has a gradient there
+    that rounding cannot set."""
+    gradients = {}
+    for jitter in (0.0, 1e-6):
+        head = GaussianHead(8, 4, num_local_models=5)
+        model = PIPEModel(None, head, MDS2(), 12.0, 4.0)
+        batch = collate_trials([(0, p) for p in trials((120, 160))])
+        free = start_head(head, "part", seed=0, start=0, jitter=jitter)
+        gradients[jitter] = torch_objective(model, free, batch, ridge=0.1, loss="nmse")[1]
+    amplitudes = 4 * 5                      # the first of the head's three (P, N) parameters
+    for gradient in gradients.values():
+        assert np.abs(gradient[:amplitudes]).max() > 1e-3
+    assert np.abs(gradients[0.0][amplitudes:]).max() < 1e-13 * np.abs(gradients[0.0][:amplitudes]).max()
+    assert np.abs(gradients[1e-6][amplitudes:]).max() > 1e-9 * np.abs(gradients[1e-6][:amplitudes]).max()

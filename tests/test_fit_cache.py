@@ -115,13 +115,26 @@ def test_the_key_covers_the_compiled_objective_and_the_head_plugins_kernels():
         assert path.read_bytes() in code
 
 
-def test_the_neutral_start_alone_is_shared_across_seeds_and_random_starts_are_not(tmp_path):
-    identify(context(seed=0, cache=str(tmp_path), restarts=1), [fitted_part])
-    identify(context(seed=1, cache=str(tmp_path), restarts=1), [fitted_part])
+def test_the_neutral_profile_alone_is_shared_across_seeds_and_a_start_that_draws_is_not(tmp_path):
+    """A fit from the neutral profile itself (neutral_jitter=0, one start) draws nothing and is stored once for
+    every seed; the jittered neutral start (the default) and the random starts draw from the seed, so each seed
+    stores and reads its own."""
+    def fit(seed: int, **settings):
+        return identify(context(seed=seed, cache=str(tmp_path), **settings), [fitted_part])[0]
+
+    def values(fitted) -> torch.Tensor:
+        return torch.cat([p.flatten() for p in fitted.model.head.parameters()])
+
+    fit(0, restarts=1, neutral_jitter=0.0)
+    fit(1, restarts=1, neutral_jitter=0.0)
     assert len(list(tmp_path.glob("*.pt"))) == 1
-    identify(context(seed=0, cache=str(tmp_path)), [fitted_part])
-    identify(context(seed=1, cache=str(tmp_path)), [fitted_part])
+    jittered = [fit(seed, restarts=1) for seed in (0, 1)]
     assert len(list(tmp_path.glob("*.pt"))) == 3
+    assert not torch.equal(values(jittered[0]), values(jittered[1]))
+    assert torch.equal(values(fit(1, restarts=1)), values(jittered[1]))     # read back: the seed's own
+    fit(0)
+    fit(1)
+    assert len(list(tmp_path.glob("*.pt"))) == 5
 
 
 def test_a_damaged_stored_fit_is_fitted_again_and_replaced(tmp_path, caplog):

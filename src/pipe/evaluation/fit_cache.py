@@ -1,13 +1,14 @@
 """A folder of identified fits (`evaluation.identification.cache`), each stored under a key of everything that
-decides it, so that runs which identify a part alike fit it once: the seeds and training-set sizes of a
-learning curve share the oracle's fits of their test parts and gpr's fits of their training parts.
+decides it, so that runs which identify a part alike fit it once: a learning curve's training-set sizes of one
+seed share the oracle's fits of their test parts and gpr's fits of the training parts they hold in common.
 
 The key hashes the part's name and trials (time, depth and the force fitted), the target, the identification
-settings, the seed where random starts use it, the sample period, the head's and the dynamic model's settings
-(their plain attributes) and the source files of the code that computes a fit (the identification and its
-compiled objective, the simulator, every module of the head's and the dynamic model's plugin packages, their
-compiled kernels among them): a changed file or setting misses the cache. A fit is
-written to a temporary file and renamed into place, so runs in parallel never read half a file.
+settings, the seed where a start draws from it (the random starts, the neutral start's jitter), the sample
+period, the head's and the dynamic model's settings (their plain attributes) and the source files of the code
+that computes a fit (the identification and its compiled objective, the simulator, every module of the head's
+and the dynamic model's plugin packages, their compiled kernels among them): a changed file or setting misses
+the cache. A fit is written to a temporary file and renamed into place, so runs in parallel never read half a
+file.
 """
 
 from __future__ import annotations

@@ -42,6 +42,14 @@ start into different basins, and neither path finds the deepest alone: on a rect
 ended at 79 % FIT(F) and one start continued from its pooled fit at 95 %, while on another plug the direct
 path was the deeper by 3 points (docs/experiments.md, "The oracle fitted to what it is scored by").
 
+The neutral start is moved by a hair (`neutral_jitter`, 1e-6 times a standard normal draw per free value, from
+the run's seed and the part's name; 0 until 2026-12-02). At the neutral profile every local model's amplitude
+is 1, so each parameter's profile is flat whatever the sections and widths, and the objective's gradient in
+those values is zero but for the machine's rounding: L-BFGS-B's first steps there followed that rounding, so
+gpr, whose targets are fitted from that start alone, scored 76.6 % on dsub on one host and 73.3 on another,
+at "± 0.00" over the seeds. Moved, the start's first steps follow the draw, and gpr's seed spread shows how far
+its targets' basins move its figure (docs/experiments.md, "gpr's targets under a perturbed start").
+
 The starts are independent: `identify_all` fits every start of every part it is asked for at once, in
 `workers` processes (by default one per thread of the run). Each start runs on one thread wherever it runs,
 so the fits do not depend on the number of workers.
@@ -104,10 +112,15 @@ class IdentificationSettings:
     engine: str = "compiled"      # "compiled" or "torch" (see the module's docstring)
     loss: str = "nmse"            # the force error fitted: "nmse" (each trial alike, as FIT(F)) or "mse"
     via_mse: bool = True          # each start also fitted on mse first, then continued on `loss` (see above)
+    neutral_jitter: float = 1e-6  # the neutral start's free values moved by this times a draw of the run's seed
+                                  # (see the module's docstring); 0: the neutral profile itself
 
     def __post_init__(self) -> None:
         if self.engine not in ENGINES:
             raise PipeError(f"unknown evaluation.identification.engine {self.engine!r}; known: {list(ENGINES)}")
+        if not (isinstance(self.neutral_jitter, (int, float)) and self.neutral_jitter >= 0):
+            raise PipeError("evaluation.identification.neutral_jitter must be a number, 0 or more, not "
+                            f"{self.neutral_jitter!r}")
         if self.loss not in FORCE_LOSSES:
             raise PipeError(f"unknown evaluation.identification.loss {self.loss!r}; known: {list(FORCE_LOSSES)}")
 
@@ -128,16 +141,23 @@ class _OutOfEvaluations(Exception):
     """Raised by the loss closure once a start has used `max_evaluations`."""
 
 
-def start_head(template: ParameterHead, name: str, seed: int, start: int) -> ParameterHead:
-    """The free one-set head of a part's start: the neutral profile for start 0; for the others a random
-    start from a generator of its own (seed, start, part name), so that a part starts alike whichever parts
-    are identified with it. (torch's generator keeps 32 bits of a seed: numpy's SeedSequence mixes the
-    three into them.)"""
+def start_head(template: ParameterHead, name: str, seed: int, start: int, jitter: float = 0.0) -> ParameterHead:
+    """The free one-set head of a part's start: for start 0 the neutral profile, each free value moved by
+    `jitter` times a standard normal draw (`neutral_jitter`); for the others a random start. Each draw comes
+    from a generator of its own (seed, start, part name), so that a part starts alike whichever parts are
+    identified with it. (torch's generator keeps 32 bits of a seed: numpy's SeedSequence mixes the three
+    into them.)"""
     rows = torch.zeros(1, dtype=torch.long)
-    if start == 0:
-        return template.free_profiles(rows)
     entropy = np.random.SeedSequence([seed, start, zlib.crc32(name.encode())]).generate_state(1)[0]
-    return template.free_profiles(rows, torch.Generator().manual_seed(int(entropy)))
+    generator = torch.Generator().manual_seed(int(entropy))
+    if start > 0:
+        return template.free_profiles(rows, generator)
+    head = template.free_profiles(rows)
+    if jitter > 0:
+        with torch.no_grad():
+            for parameter in head.parameters():
+                parameter.add_(jitter * torch.randn(parameter.shape, generator=generator))
+    return head
 
 
 class StartFit(NamedTuple):
@@ -322,7 +342,8 @@ def _stored(ctx: EvalContext, part: PartData, trials: list[Profile], target: str
         return None, None
     folder = Path(os.environ.get("PROJECT_ROOT", ".")) / settings.cache   # a relative folder: from the root
     decisive = {name: value for name, value in asdict(settings).items() if name not in ("cache", "workers")}
-    seed = ctx.seed if settings.restarts > 1 else None      # the neutral start alone draws nothing
+    draws = settings.restarts > 1 or settings.neutral_jitter > 0
+    seed = ctx.seed if draws else None      # the neutral profile alone draws nothing
     key = fit_key(part.name, trials, target, decisive, seed, ctx.dt, ctx.model.head, ctx.model.dynamics)
     stored = load_fit(folder, part.name, key)
     if stored is None:
@@ -342,7 +363,8 @@ def part_jobs(ctx: EvalContext, name: str, trials: list[Profile], settings: Iden
     scales = ctx.model.dynamics.parameter_scales(*profile_scales(trials))
     simulator = PIPEModel(None, ctx.model.head, ctx.model.dynamics).with_head(ctx.model.head, scales)
     firsts = [None, "mse"] if settings.via_mse and settings.loss != "mse" else [None]
-    return [StartJob(simulator, start_head(ctx.model.head, name, ctx.seed, start), batch, settings, first)
+    return [StartJob(simulator, start_head(ctx.model.head, name, ctx.seed, start, settings.neutral_jitter), batch,
+                     settings, first)
             for start in range(settings.restarts) for first in firsts]
 
 
