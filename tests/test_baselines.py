@@ -356,9 +356,10 @@ def test_each_start_draws_its_own_random_profile():
     assert torch.equal(values("a", 0, 1, 1e-6), values("a", 0, 1))     # a random start takes no jitter
 
 
-def test_a_negative_or_non_numeric_jitter_is_refused_naming_the_option():
-    for bad in (-1e-6, "small"):
-        with pytest.raises(PipeError, match="evaluation.identification.neutral_jitter must be a number, 0 or more"):
+def test_a_negative_non_finite_or_non_numeric_jitter_is_refused_naming_the_option():
+    for bad in (-1e-6, "small", True, float("nan"), float("inf")):
+        message = "evaluation.identification.neutral_jitter must be a finite number, 0 or more"
+        with pytest.raises(PipeError, match=message):
             IdentificationSettings.from_config({"neutral_jitter": bad})
 
 

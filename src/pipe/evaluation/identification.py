@@ -118,8 +118,9 @@ class IdentificationSettings:
     def __post_init__(self) -> None:
         if self.engine not in ENGINES:
             raise PipeError(f"unknown evaluation.identification.engine {self.engine!r}; known: {list(ENGINES)}")
-        if not (isinstance(self.neutral_jitter, (int, float)) and self.neutral_jitter >= 0):
-            raise PipeError("evaluation.identification.neutral_jitter must be a number, 0 or more, not "
+        jitter = self.neutral_jitter
+        if isinstance(jitter, bool) or not (isinstance(jitter, (int, float)) and 0 <= jitter < math.inf):
+            raise PipeError("evaluation.identification.neutral_jitter must be a finite number, 0 or more, not "
                             f"{self.neutral_jitter!r}")
         if self.loss not in FORCE_LOSSES:
             raise PipeError(f"unknown evaluation.identification.loss {self.loss!r}; known: {list(FORCE_LOSSES)}")
