@@ -119,9 +119,9 @@ class IdentificationSettings:
         if self.engine not in ENGINES:
             raise PipeError(f"unknown evaluation.identification.engine {self.engine!r}; known: {list(ENGINES)}")
         jitter = self.neutral_jitter
-        if isinstance(jitter, bool) or not (isinstance(jitter, (int, float)) and 0 <= jitter < math.inf):
+        if isinstance(jitter, bool) or not (isinstance(jitter, (int, float)) and math.isfinite(jitter) and jitter >= 0):
             raise PipeError("evaluation.identification.neutral_jitter must be a finite number, 0 or more, not "
-                            f"{self.neutral_jitter!r}")
+                            f"{jitter!r}")
         if self.loss not in FORCE_LOSSES:
             raise PipeError(f"unknown evaluation.identification.loss {self.loss!r}; known: {list(FORCE_LOSSES)}")
 
