@@ -12,7 +12,9 @@ from the held-out part's force there; `--stage1` trains its stage 1 again in eac
 parts alone (`fold_encoder`), so that nothing of the held-out part's recordings reaches its code; `--stage1
 all` does so for every run (for a run of weight 0, a control: only stage 1's training parts and checkpoint
 rule change). `--blackbox` scores the blackbox baseline on each fold too, trained on the fold's training parts
-for its `evaluation.blackbox_steps` (no validation parts to stop on), reading the same codes.
+for its `evaluation.blackbox_steps` (no validation parts to stop on), reading the same codes; `--blackbox-clip`
+adds the same blackbox with `evaluation.blackbox_clip` (its inputs clipped to the fold's training samples' range)
+in a column of its own, trained in the same fold.
 Usage (one thread, as the results were measured):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/part_cv.py OUT.jsonl runs/pins/seed_{0,1,2} \
       --variants default,loss=mse
@@ -38,7 +40,7 @@ import torch
 from common import append_row, kept_folder, load_encoder, load_run
 from common import fits as method_fits
 from lead_in import dataset_lead_ins
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
 from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
 from summarise import domain_of, read_rows, spread
@@ -59,15 +61,16 @@ def table(rows: list[dict]) -> str:
     """Per domain and variant: the seeds' mean ± standard deviation of the mean FIT(F) over the held-out parts,
     the median over every held-out part and seed, in how many of those the variant's FIT beats `default`'s, and
     the baselines' FIT on the same folds as mean ± std where the rows have it: `nearest` (since 2026-11-27),
-    and the blackbox in a column of its own where any row has it (`--blackbox`)."""
+    and the blackbox (`--blackbox`) and the clipped blackbox (`--blackbox-clip`) in columns of their own where any
+    row has them."""
     fits: dict[tuple[str, str], dict[tuple[str, str], float]] = defaultdict(dict)
-    baselines = {name: defaultdict(dict) for name in ("nearest", "blackbox")}
+    baselines = {name: defaultdict(dict) for name in ("nearest", "blackbox", "blackbox_clip")}
     for row in rows:
         fits[(domain_of(row["run"]), row["variant"])][(row["run"], row["held_out"])] = row["fit"]
         for name, found in baselines.items():
             if name in row:
                 found[(domain_of(row["run"]), row["variant"])][(row["run"], row["held_out"])] = row[name]
-    shown = ["nearest"] + (["blackbox"] if baselines["blackbox"] else [])
+    shown = ["nearest"] + [name for name in ("blackbox", "blackbox_clip") if baselines[name]]
     lines = ["| domain | variant | seeds | FIT(F) [%] | median | above default | " + " | ".join(shown) + " |",
              "| --- | --- | --- | --- | --- | --- | " + " | ".join("---" for _ in shown) + " |"]
     for (domain, variant), cases in fits.items():
@@ -235,6 +238,14 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
             yield Fold(cfg, fold, parts[-1], spec, model, codes, index, time.perf_counter() - start, retrain)
 
 
+def clipping(cfg: DictConfig) -> DictConfig:
+    """A copy of the run's config whose evaluation clips the blackbox's inputs (`evaluation.blackbox_clip`)."""
+    clipped_cfg = copy.deepcopy(cfg)
+    with open_dict(clipped_cfg):
+        clipped_cfg.evaluation.blackbox_clip = True
+    return clipped_cfg
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
@@ -246,6 +257,9 @@ def main() -> None:
     ap.add_argument("--blackbox", action="store_true",
                     help="score the blackbox baseline on each fold too (trained on the fold's training parts, its "
                     "evaluation.blackbox_steps steps: a fold has no validation parts to stop on)")
+    ap.add_argument("--blackbox-clip", action="store_true",
+                    help="score the blackbox with evaluation.blackbox_clip on each fold too (as --blackbox, its "
+                    "inputs clipped to the fold's training samples' range), in a column of its own")
     ap.add_argument("--stage1", nargs="?", const="force", choices=("force", "all"),
                     help="train stage 1 again in each fold: where it read recordings (a force weight above 0; "
                     "the default of --stage1), or in every run (all)")
@@ -269,6 +283,9 @@ def main() -> None:
             row = {"run": str(Path(run)), "variant": fold.variant, "held_out": fold.held_out.name,
                    "seconds": fold.seconds, "fit": found["pipe"], **{name: found[name] for name in baselines},
                    "stage1_per_fold": fold.stage1_per_fold}
+            if args.blackbox_clip:
+                row["blackbox_clip"] = method_fits(clipping(fold.cfg), fold.data, fold.model, fold.codes,
+                                                   fold.index, "test", ["blackbox"])["blackbox"]
             append_row(args.out, row)
 
 

@@ -312,15 +312,36 @@ def test_part_cv_table_gives_the_blackbox_a_column_where_the_rows_have_it(tmp_pa
     assert "| domain | variant | seeds | FIT(F) [%] | median | above default | nearest | blackbox |" in printed
     assert (f"| dsub | default | 2 | 65.00 ± {statistics.stdev([60.0, 70.0]):.2f} | 65.00 |  | "
             f"55.00 ± {statistics.stdev([50.0, 60.0]):.2f} | 0.00 ± {statistics.stdev([20.0, -20.0]):.2f} |") in printed
+    for row in rows:                         # --blackbox-clip: the clipped blackbox 5 above the plain one
+        row["blackbox_clip"] = row["blackbox"] + 5.0
+    printed = printed_table("part_cv.py", rows, tmp_path, "--table")
+    assert "| nearest | blackbox | blackbox_clip |" in printed
+    assert f"| 0.00 ± {statistics.stdev([20.0, -20.0]):.2f} | 5.00 ± {statistics.stdev([20.0, -20.0]):.2f} |" in printed
+
+
+def test_part_cv_clipping_switches_the_clip_on_in_a_copy_of_the_config():
+    from omegaconf import OmegaConf
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from part_cv import clipping
+
+    cfg = OmegaConf.create({"evaluation": {"blackbox_steps": 2000}})
+    OmegaConf.set_struct(cfg, True)          # as a run's saved config is read back
+    assert clipping(cfg).evaluation == {"blackbox_steps": 2000, "blackbox_clip": True}
+    assert "blackbox_clip" not in cfg.evaluation
 
 
 @pytest.mark.slow
 def test_part_cv_blackbox_scores_each_fold_beside_pipe_and_nearest(unsliced_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
-    run_script("part_cv.py", str(rows_file), str(unsliced_run.run_dir), "--variants", "default", "--blackbox")
+    run_script("part_cv.py", str(rows_file), str(unsliced_run.run_dir), "--variants", "default", "--blackbox",
+               "--blackbox-clip")
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     assert sorted(row["held_out"] for row in rows) == ["dsub15", "dsub9", "vga"]
     assert all(math.isfinite(row["blackbox"]) and row["blackbox"] != row["nearest"] for row in rows)
+    # the same network's start and draws, clipped: two training parts per fold span too little for every
+    # held-out part to lie inside their range, so clipping moves at least one fold
+    assert all(math.isfinite(row["blackbox_clip"]) for row in rows)
+    assert any(row["blackbox_clip"] != pytest.approx(row["blackbox"], abs=1e-6) for row in rows)
 
 
 @pytest.mark.slow
