@@ -16,6 +16,7 @@ from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import MethodResult, evaluate_methods
 from pipe.model import ltv
 from pipe.model.pipe_model import PIPEModel
+from pipe.model.standardiser import Standardiser
 from pipe.pipeline import build_components, build_model, load_domain, training_record, weights_dir
 from pipe.training.force_choice import CANDIDATE_PREFIX, candidate_dirs
 
@@ -108,6 +109,14 @@ def pipe_fit(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: t
              index: dict[str, int], split: str) -> float:
     """PIPE's FIT(F) on a split's parts."""
     return fits(cfg, data, model, latents, index, split, ["pipe"])["pipe"]
+
+
+def standardised_rows(values: torch.Tensor, rows: list[int] | slice, what: str) -> torch.Tensor:
+    """(parts, k) `values` standardised over the training parts' `rows` as the slices are (`Standardiser`: a
+    spread below its floor raised to it, so a measure the training parts share stays near 0), float32."""
+    standardiser = Standardiser(values.shape[1])
+    standardiser.fit(values[rows], what)
+    return standardiser.standardise(values)
 
 
 def score(out: str, row: dict, cfg: DictConfig, data: PreparedDomain, model: PIPEModel, latents: torch.Tensor,

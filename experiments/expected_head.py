@@ -28,6 +28,8 @@ hand-made input is replaced by its first K principal components over the trainin
 over them, in the code's place (zeros after), to see whether a compact input of the same measures does better;
 with `--lead-in` the log of the lead-in's length measured on each mesh (`lead_in.py`), standardised over the
 training parts, fills the code's first number, to see whether that measure gives what the parameters give;
+with `--corners` the corners of each mesh's sections (`section_corners.py`: a plug's contacts), standardised
+over the training parts as the slices are, fill the code's next numbers (after the lead-in, if given);
 with `--bottleneck K` the head's first layer reads its input through a learnt linear map to K numbers (trained
 with the head through the force), to see whether a compact input chosen for the force does what the parameters
 do where compact inputs chosen for the measures' spread (`--components`) did not; with `--fixed-grid` the head
@@ -56,10 +58,11 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
-from common import score
+from common import score, standardised_rows
 from lead_in import dataset_lead_ins
 from omegaconf import open_dict
 from parameter_codes import generator_parts, parameter_codes, principal_codes, shape_parameters
+from section_corners import dataset_corners
 from twin_oracle import TWIN_STREAMS, drawn_parts, expected_parts, pooled, run_config, twin_parts
 
 from pipe.data.alignment import align_final_depth
@@ -220,6 +223,8 @@ def main() -> None:
                     help="with --input sections+slices: its first K principal components instead")
     ap.add_argument("--lead-in", action="store_true",
                     help="with --input sections+slices: the lead-in measured on the mesh in the code's place")
+    ap.add_argument("--corners", action="store_true",
+                    help="with --input sections+slices: the corners of the mesh's sections in the code's place")
     ap.add_argument("--bottleneck", type=int, default=None, metavar="K",
                     help="the head reads its input through a learnt linear map to K numbers")
     ap.add_argument("--fixed-grid", action="store_true",
@@ -243,6 +248,9 @@ def main() -> None:
                          "--with-parameters, and K of 1 or more")
     if args.lead_in and (args.input != "sections+slices" or args.with_parameters or args.components is not None):
         raise SystemExit("--lead-in fills the hand-made input's code of zeros: give --input sections+slices, and "
+                         "neither --with-parameters nor --components")
+    if args.corners and (args.input != "sections+slices" or args.with_parameters or args.components is not None):
+        raise SystemExit("--corners fills the hand-made input's code of zeros: give --input sections+slices, and "
                          "neither --with-parameters nor --components")
     targets = [target for target in args.targets.split(",") if target]     # none: the twins' targets alone
     if unknown := set(targets) - set(TARGETS):
@@ -287,6 +295,8 @@ def main() -> None:
     hand_made = args.input == "sections+slices"
     lead_in = (standardised_log(dataset_lead_ins(data.dataset_dir, [p.name for p in ordered]), len(train))
                if args.lead_in else None)
+    corners = (standardised_rows(torch.from_numpy(dataset_corners(data.dataset_dir, [p.name for p in ordered])),
+                                 slice(0, len(train)), "section corners") if args.corners else None)
     for seed in args.seeds:
         cfg = run_config(args.family, args.domain, seed, args.overrides)
         with open_dict(cfg):
@@ -313,6 +323,8 @@ def main() -> None:
                                                                    encoder.latent_dim, without))
             if lead_in is not None:
                 latents = with_parameters(latents, lead_in)
+            if corners is not None:
+                latents = with_parameters(latents, torch.cat([latents[:, :int(lead_in is not None)], corners], 1))
         else:
             latents = parameter_codes(shapes, len(train), "geometry", head.latent_dim)
         for target in targets + [f"twins={count}" for count in args.twins]:
@@ -327,6 +339,7 @@ def main() -> None:
             points += f"+parameters={args.with_parameters}" if chosen else ""
             points += f"+components={args.components}" if args.components is not None else ""
             points += "+lead_in" if args.lead_in else ""
+            points += "+corners" if args.corners else ""
             points += f"+bottleneck={args.bottleneck}" if args.bottleneck is not None else ""
             points += "+fixed_grid" if args.fixed_grid else ""
             points += "+aligned_ends" if args.align_ends else ""

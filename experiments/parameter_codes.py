@@ -19,6 +19,10 @@ from the run's own initial weights, as `stage2_variants.py`'s `default`, once pe
             by slices through the part's mesh near its mating end (mesh_slices.py: the separate regions, their
             outline's length and area 0.5 to 10 mm from the tip), standardised over the training parts, in a
             fresh head of that width seeded with the run's seed; `nearest` reads the whole input
+  codes+corners  the run's own input with the corners of the mesh's sections (section_corners.py: a plug's
+            contacts), standardised over the training parts, right after the encoder's code, in a fresh head of
+            that width seeded with the run's seed; the baselines choose among the input's blocks as the
+            evaluation's do, the corners counted in the code's block
 Each is padded with zeros to the latent size, so the head is the run's own and `nearest` reads the training
 part nearest in that space. A head on `geometry` shows how far a perfect geometry encoder would take PIPE;
 `physics` minus `geometry` is what no geometry can give; `--without detents` leaves parameters out of both
@@ -40,11 +44,12 @@ import time
 from pathlib import Path
 
 import torch
-from common import kept_folder, load_encoder, load_run, pooled_features, score
+from common import kept_folder, load_encoder, load_run, pooled_features, score, standardised_rows
 from omegaconf import DictConfig, OmegaConf
+from section_corners import dataset_corners
 
 from pipe.data.batches import stack_clouds, stack_slices
-from pipe.data.slices import SLICE_SIZE
+from pipe.data.slices import SLICE_DEPTHS_MM, SLICE_SIZE
 from pipe.model.interfaces import ParameterHead
 from pipe.model.sections import SECTION_SIZE, SectionCode
 from pipe.model.slices import SliceCode
@@ -53,7 +58,7 @@ from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.families import family_parts
 from pipe.training.fit import fit_head
 
-KINDS = ("codes", "geometry", "physics", "features", "sections", "codes+sections", "codes+slices")
+KINDS = ("codes", "geometry", "physics", "features", "sections", "codes+sections", "codes+slices", "codes+corners")
 
 
 def shape_parameters(part: Plug | Pin) -> dict[str, float]:
@@ -163,14 +168,22 @@ def main() -> None:
         for kind in kinds:
             head.load_state_dict(initial)
             kind_head = head
-            if kind in ("codes+sections", "codes+slices"):
+            if kind in ("codes+sections", "codes+slices", "codes+corners"):
                 torch.manual_seed(cfg.seed)
-                width = 2 * head.latent_dim if kind == "codes+sections" else head.latent_dim + SLICE_SIZE
+                extra = {"codes+sections": head.latent_dim, "codes+slices": SLICE_SIZE,
+                         "codes+corners": len(SLICE_DEPTHS_MM)}[kind]
+                width = head.latent_dim + extra
                 kind_head = build_plugin("head", cfg.head, ParameterHead, latent_dim=width,
                                          num_parameters=len(dynamics.parameter_names))
             model = build_model(cfg, data, (encoder, kind_head, dynamics))
             if kind == "codes":
                 latents = model.latent_distribution(clouds, slices)[0]
+            elif kind == "codes+corners":
+                own = model.latent_distribution(clouds, slices)[0]
+                code_size = encoder.latent_dim
+                corners = standardised_rows(torch.from_numpy(dataset_corners(data.dataset_dir, list(index))),
+                                            slice(0, len(train)), "section corners")
+                latents = torch.cat([own[:, :code_size], corners, own[:, code_size:]], dim=1)
             elif kind == "codes+sections":
                 latents = torch.cat([model.latent_distribution(clouds, slices)[0],
                                      section_codes(clouds, len(train), head.latent_dim)], dim=1)
@@ -184,7 +197,7 @@ def main() -> None:
             else:
                 latents = parameter_codes([generator[p.name] for p in ordered], len(train), kind, head.latent_dim,
                                           without)
-            if kind not in ("codes", "codes+sections"):
+            if kind not in ("codes", "codes+sections", "codes+corners"):
                 model.sections = None   # the code is replaced or extended: no cross-section at its tail for nearest
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:

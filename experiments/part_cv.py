@@ -37,11 +37,12 @@ from typing import NamedTuple
 
 import lightning as L
 import torch
-from common import append_row, kept_folder, load_encoder, load_run
+from common import append_row, kept_folder, load_encoder, load_run, standardised_rows
 from common import fits as method_fits
 from lead_in import dataset_lead_ins
 from omegaconf import DictConfig, open_dict
 from profile_pretraining import FITS, ProfileTargets, pretrain_head, profile_targets
+from section_corners import dataset_corners
 from stage2_variants import clipped, parse_variant, variant_config, variant_head, variant_stage
 from summarise import domain_of, read_rows, spread
 
@@ -51,7 +52,6 @@ from pipe.data.prepared import PartData, PreparedDomain, data_scales
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.sections import SectionCode
 from pipe.model.slices import SliceCode
-from pipe.model.standardiser import Standardiser
 from pipe.pipeline import build_model
 from pipe.training import fit as fit_module
 from pipe.training.force_choice import force_weights
@@ -140,9 +140,7 @@ def fold_encoder(cfg: DictConfig, encoder: torch.nn.Module, initial: dict[str, t
 def lead_in_code(logs: torch.Tensor, rows: list[int]) -> torch.Tensor:
     """The logs of the parts' lead-ins (parts, 1), standardised over the fold's training `rows` (a spread below
     the standardiser's floor raised to it: the generated plugs all measure the grid's first depth)."""
-    standardiser = Standardiser(1)
-    standardiser.fit(logs[rows], "lead-ins")
-    return standardiser.standardise(logs)
+    return standardised_rows(logs, rows, "lead-ins")
 
 
 def fold_parts(train: list[PartData], held_out: PartData, variant: dict,
@@ -183,6 +181,8 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
     aligned = {p.name: align_final_depth(p) for p in pool}
     lead_in_logs = (torch.from_numpy(dataset_lead_ins(data.dataset_dir, [p.name for p in pool + test])).log()[:, None]
                     if any("leadin" in variant for _, variant in variants) else None)
+    corners = (torch.from_numpy(dataset_corners(data.dataset_dir, [p.name for p in pool + test]))
+               if any("corners" in variant for _, variant in variants) else None)
     for held_out in pool:
         if only is not None and held_out.name not in only:
             continue
@@ -221,6 +221,11 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 read = torch.cat([read, lead], dim=1)
                 read_logvars = torch.cat([read_logvars, torch.full_like(lead, -torch.inf)], dim=1)
                 read_spread = torch.cat([read_spread, lead[rows].std(0)])
+            if "corners" in variant:                                        # the sections' corners after all
+                counted = standardised_rows(corners, rows, "section corners")
+                read = torch.cat([read, counted], dim=1)
+                read_logvars = torch.cat([read_logvars, torch.full_like(counted, -torch.inf)], dim=1)
+                read_spread = torch.cat([read_spread, counted[rows].std(0)])
             model = PIPEModel(encoder, trained, dynamics, *data_scales(parts[:-1]), sections=sections,
                               slices=unscaled.slices)
             if "pretrain" in variant:

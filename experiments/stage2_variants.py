@@ -37,6 +37,9 @@ loaded, and for each variant the head is trained again from the run's own initia
   leadin       (part_cv.py only) the head also reads the lead-in's length measured on the part's mesh (lead_in.py),
                its log standardised over the fold's training parts, after the run's input (and after slices):
                a head one input wider, seeded as for slices
+  corners      (part_cv.py only) the head also reads the corners of the mesh's sections (section_corners.py: a
+               plug's contacts), standardised over the fold's training parts, after the run's input (and after
+               slices and leadin): a head that much wider, seeded as for slices
   align        (part_cv.py only) every part's trials aligned on their final depth (`data.align_final_depth`)
                for training and scoring, PIPE's and `nearest`'s alike; the codes are the run's
   init=K       the head's initial weights drawn anew, as train.py draws them but under seed + 1000 K (K >= 1):
@@ -72,7 +75,7 @@ from omegaconf import DictConfig
 from profile_pretraining import FITS, pretrain_head, profile_targets
 
 from pipe.data.batches import stack_geometry
-from pipe.data.slices import SLICE_SIZE
+from pipe.data.slices import SLICE_DEPTHS_MM, SLICE_SIZE
 from pipe.model.interfaces import ParameterHead
 from pipe.model.losses import FORCE_LOSSES
 from pipe.pipeline import build_components, build_model, build_plugin
@@ -180,8 +183,10 @@ def variant_stage(variant: dict[str, float | str], spread: torch.Tensor, logvars
 
 
 KINDS = ("default", "wd", "std", "noise", "sample", "last", "ema", "cosine", "epochs", "select", "loss", "lr",
-         "pretrain", "hidden", "local", "init", "clip", "sections", "slices", "leadin", "align", "encoder", "mu")
-PART_CV_ONLY = ("clip", "sections", "slices", "leadin", "align")   # they change a held-out part's code or trials
+         "pretrain", "hidden", "local", "init", "clip", "sections", "slices", "leadin", "corners", "align", "encoder",
+         "mu")
+PART_CV_ONLY = ("clip", "sections", "slices", "leadin", "corners", "align")   # they change a held-out part's code
+                                                                               #   or trials
 HEAD_SIZES = {"hidden": "hidden", "local": "num_local_models"}    # variant kind: the head's option it sets
 WORDS = {"select": ("fit",), "loss": tuple(FORCE_LOSSES)}     # the kinds whose value is a word, and their words
 
@@ -200,7 +205,7 @@ def parse_variant(spec: str) -> dict[str, float | str]:
     if {"encoder", "mu"} & exclusive and len(exclusive) > 1:
         raise SystemExit(f"unknown variant {spec!r}: encoder= and mu= combine with neither each other nor select, wd, "
                          "cosine or std (their optimiser and codes are their own)")
-    for extra in ("slices", "leadin"):
+    for extra in ("slices", "leadin", "corners"):
         if extra in variant and ({"hidden", "local", "encoder", "mu"} & variant.keys() or variant.get("sections") == 0):
             raise SystemExit(f"unknown variant {spec!r}: {extra} combine with neither hidden, local, encoder, mu nor "
                              "sections=0 (its head's input and size are its own)")
@@ -231,12 +236,14 @@ def variant_head(cfg: DictConfig, variant: dict[str, float | str],
     """The head a variant trains and its initial weights: the run's own `head`, or for hidden=H and local=N a
     head of that size (or input, for sections=0), built and seeded as train.py builds its components (under
     seed + 1000 K for init=K); sections=S with S > 0 reads an input of the run's size; slices reads the run's
-    input and the mesh's slices after it, leadin the run's input and the lead-in after it (and after slices): a
-    head of that width seeded with the run's seed, + 1000 K."""
+    input and the mesh's slices after it, leadin the run's input and the lead-in after it (and after slices),
+    corners the corners of the mesh's sections after all of them: a head of that width seeded with the run's
+    seed, + 1000 K."""
     sizes = {HEAD_SIZES[kind]: int(value) for kind, value in variant.items() if kind in HEAD_SIZES}
-    if {"slices", "leadin"} & variant.keys():
+    if {"slices", "leadin", "corners"} & variant.keys():
         L.seed_everything(cfg.seed + 1000 * int(variant.get("init", 0)), workers=True)
-        width = head.latent_dim + SLICE_SIZE * ("slices" in variant) + ("leadin" in variant)
+        width = (head.latent_dim + SLICE_SIZE * ("slices" in variant) + ("leadin" in variant)
+                 + len(SLICE_DEPTHS_MM) * ("corners" in variant))
         head = build_plugin("head", cfg.head, ParameterHead, latent_dim=width, num_parameters=head.num_parameters)
         return head, copy.deepcopy(head.state_dict())
     if sizes or "init" in variant or variant.get("sections") == 0:

@@ -81,6 +81,7 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     ("stage2_variants.py", "clip=0", "run it with part_cv.py"), ("stage2_variants.py", "sections=0", "part_cv.py"),
     ("stage2_variants.py", "slices", "part_cv.py"), ("stage2_variants.py", "align", "part_cv.py"),
     ("stage2_variants.py", "leadin", "part_cv.py"), ("part_cv.py", "leadin+hidden=16", "combine with neither"),
+    ("stage2_variants.py", "corners", "part_cv.py"), ("part_cv.py", "corners+mu=0.01", "combine with neither"),
     ("part_cv.py", "align+pretrain=5", "unaligned"), ("part_cv.py", "slices+hidden=16", "combine with neither"),
     ("part_cv.py", "slices+sections=0", "combine with neither"),
     ("part_cv.py", "sections=-1", "at least 0"),
@@ -222,7 +223,7 @@ def test_part_cv_holds_out_each_non_test_part_in_turn(unsliced_run, tmp_path):
     rows_file = tmp_path / "rows.jsonl"
     # ema=2 differs only if the averaged head is the one kept (before KeptAverage, the default's to the digit)
     variants = ("default", "loss=mse", "mu=0.01", "ema=2", "sections=0", "sections=3", "slices", "align", "leadin",
-                "sections=1")
+                "corners", "sections=1")
     run_script("part_cv.py", str(rows_file), str(unsliced_run.run_dir), "--variants", ",".join(variants))
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     # every training and validation part of the tiny domain held out once per variant; the test part never
@@ -514,6 +515,16 @@ def test_parameter_codes_on_the_encoders_codes_reproduce_the_runs_own_result(uns
     assert statistics.fmean(codes["test_parts"]["pipe"].values()) == pytest.approx(codes["test"]["pipe"], abs=1e-9)
     assert codes["test"]["nearest"] == pytest.approx(trained_run.results["nearest"].domain["fit_F"], abs=1e-9)
     assert geometry["test"]["pipe"] != pytest.approx(codes["test"]["pipe"], abs=1e-6)
+
+
+@pytest.mark.slow
+def test_parameter_codes_trains_a_head_with_the_corners_after_the_encoders_code(trained_run, tmp_path):
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("parameter_codes.py", str(rows_file), str(trained_run.run_dir), "--codes", "codes,codes+corners")
+    codes, cornered = (json.loads(line) for line in rows_file.read_text().splitlines())
+    assert cornered["variant"] == "codes+corners" and math.isfinite(cornered["test"]["nearest"])
+    # the tiny domain's D-subs have round pins and rounded shells: no corners, so only the fresh head differs
+    assert math.isfinite(cornered["test"]["pipe"]) and cornered["test"]["pipe"] != codes["test"]["pipe"]
 
 
 @pytest.mark.slow
@@ -1341,6 +1352,46 @@ def test_lead_in_of_a_part_without_a_chamfer_is_the_grids_first_depth_and_of_a_c
     assert math.isclose(lead_in_length(cone), REACH_MM, rel_tol=0.05)
     widths = section_widths(box, [1.0, 19.0, 25.0])
     assert widths[:2] == pytest.approx([8.0, 8.0]) and widths[2] == 0.0       # beyond the part: nothing
+
+
+@pytest.mark.parametrize("sides, corners", [(4, 4), (5, 5), (6, 0), (16, 0)])
+def test_ring_corners_count_turns_sharper_than_the_threshold(sides, corners):
+    import shapely
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from section_corners import ring_corners
+
+    # a regular polygon turns 360 / sides degrees at each vertex: a square's 90 and a pentagon's 72 are corners
+    # (above 70), a hexagon's 60 and a 16-gon's 22.5 (a tessellated circle) are not
+    ring = shapely.Point(0.0, 0.0).buffer(3.0, quad_segs=1).exterior if sides == 4 else shapely.LinearRing(
+        [(3.0 * math.cos(2 * math.pi * k / sides), 3.0 * math.sin(2 * math.pi * k / sides)) for k in range(sides)])
+    assert ring_corners(ring) == corners
+    # vertices inserted along its sides (turns of 0) and a dent below the simplification's tolerance change nothing
+    dense = shapely.LinearRing(shapely.segmentize(shapely.Polygon(ring), 0.1).exterior.coords)
+    assert ring_corners(dense) == corners
+
+
+@pytest.mark.parametrize("pads", [0, 1, 5])
+def test_corner_descriptor_counts_a_tongues_pads_and_not_a_round_pin(pads):
+    import trimesh
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from section_corners import corner_descriptor
+
+    from pipe.data.slices import SLICE_DEPTHS_MM
+
+    # a 20 x 2 mm tongue 8 mm long with `pads` 1 mm pads 0.1 mm proud of its top face from 1 mm on: the pads
+    # merge with the tongue in a section, whose outline turns through 4 corners plus 4 per pad (2 convex, 2
+    # concave); at 0.5 mm the pads have not started, and 10 mm is beyond the part
+    tongue = trimesh.creation.box(extents=(20.0, 2.0, 8.0), transform=trimesh.transformations.translation_matrix(
+        (0.0, 0.0, 4.0)))
+    parts = [tongue] + [trimesh.creation.box(extents=(1.0, 0.2, 7.0), transform=trimesh.transformations
+                                             .translation_matrix((-8.0 + 3.0 * k, 1.0, 4.5))) for k in range(pads)]
+    plug = trimesh.boolean.union(parts, engine="manifold") if pads else tongue
+    counts = dict(zip(SLICE_DEPTHS_MM, map(round, map(math.expm1, corner_descriptor(plug)))))
+    assert counts == {0.5: 4, 2.0: 4 + 4 * pads, 5.0: 4 + 4 * pads, 10.0: 0}
+    pin = trimesh.creation.cylinder(radius=2.0, height=10.0, sections=16)     # a tessellated circle: no corner
+    assert corner_descriptor(pin).tolist() == [0.0, 0.0, 0.0, 0.0]
 
 
 def test_expected_head_bottleneck_makes_the_head_read_a_rank_k_view_of_its_input():
