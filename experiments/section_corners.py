@@ -4,7 +4,7 @@ On the rect family the head fed the generator's parameters closes 81 % of the ga
 at 100 training parts, PIPE 42 % (docs/experiments.md, "What the codes hold"). Of what the parameters hold, PIPE's
 input reads a plug's number of contacts worst (R^2 0.53 from the cross-section, 0.65 from the codes), and the
 generator's contact friction grows with it. The slices (`pipe.data.slices`) count separate regions, and a rect
-plug's pads, 0.1 mm thick on the tongue, merge with it there: the count sees the shell and the tongue. Each pad
+plug's pads, 0.05 mm proud of the tongue, merge with it there: the count sees the shell and the tongue. Each pad
 still turns the section's outline through four sharp corners. This measure counts, per slice depth
 (SLICE_DEPTHS_MM from the mating end), the vertices of the section's outline, simplified to within
 SIMPLIFY_MM, whose turn exceeds CORNER_DEGREES: a prism's corners count, a tessellated arc's small turns (a
