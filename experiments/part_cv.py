@@ -143,6 +143,14 @@ def lead_in_code(logs: torch.Tensor, rows: list[int]) -> torch.Tensor:
     return standardised_rows(logs, rows, "lead-ins")
 
 
+def appended(read: torch.Tensor, logvars: torch.Tensor, spread: torch.Tensor, measure: torch.Tensor,
+             rows: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A head's input, its log-variances and its spread over the fold's training `rows`, with a standardised
+    `measure` (parts, k) after the input: it has no spread of its own (log-variance -inf)."""
+    return (torch.cat([read, measure], dim=1), torch.cat([logvars, torch.full_like(measure, -torch.inf)], dim=1),
+            torch.cat([spread, measure[rows].std(0)]))
+
+
 def fold_parts(train: list[PartData], held_out: PartData, variant: dict,
                aligned: dict[str, PartData]) -> list[PartData]:
     """A fold's training parts, then its held-out part: for `align`, their versions in `aligned` (each part's
@@ -212,20 +220,14 @@ def fold_models(run_dir: Path, variants: list[tuple[str, dict]], fits: str,
                 weights = section_weights(encoder.latent_dim, latents.shape[1], factor)
                 read, read_logvars, read_spread = latents * weights, logvars, spread * weights
             if "slices" in variant:                                         # the mesh's slices after it
-                sliced = SliceCode.fitted(slices[rows])(slices)
-                read = torch.cat([read, sliced], dim=1)
-                read_logvars = torch.cat([read_logvars, torch.full_like(sliced, -torch.inf)], dim=1)
-                read_spread = torch.cat([read_spread, sliced[rows].std(0)])
+                read, read_logvars, read_spread = appended(read, read_logvars, read_spread,
+                                                           SliceCode.fitted(slices[rows])(slices), rows)
             if "leadin" in variant:                                         # the lead-in after all of it
-                lead = lead_in_code(lead_in_logs, rows)
-                read = torch.cat([read, lead], dim=1)
-                read_logvars = torch.cat([read_logvars, torch.full_like(lead, -torch.inf)], dim=1)
-                read_spread = torch.cat([read_spread, lead[rows].std(0)])
+                read, read_logvars, read_spread = appended(read, read_logvars, read_spread,
+                                                           lead_in_code(lead_in_logs, rows), rows)
             if "corners" in variant:                                        # the sections' corners after all
-                counted = standardised_rows(corners, rows, "section corners")
-                read = torch.cat([read, counted], dim=1)
-                read_logvars = torch.cat([read_logvars, torch.full_like(counted, -torch.inf)], dim=1)
-                read_spread = torch.cat([read_spread, counted[rows].std(0)])
+                read, read_logvars, read_spread = appended(read, read_logvars, read_spread,
+                                                           standardised_rows(corners, rows, "section corners"), rows)
             model = PIPEModel(encoder, trained, dynamics, *data_scales(parts[:-1]), sections=sections,
                               slices=unscaled.slices)
             if "pretrain" in variant:

@@ -23,6 +23,7 @@ import shapely
 import trimesh
 from mesh_slices import dataset_meshes
 
+from pipe.data.dataset import part_dirs
 from pipe.data.slices import SLICE_DEPTHS_MM, cutting_height, slice_regions
 from pipe.data.spec import load_spec
 
@@ -70,9 +71,7 @@ def main() -> None:
     ap.add_argument("--count", type=int, default=None, help="the first COUNT parts only")
     args = ap.parse_args()
     spec = load_spec(args.dataset)
-    names = sorted(spec.parts)[: args.count] if spec.parts else []
-    if not names:
-        names = sorted(p.name for p in (Path(args.dataset) / "parts").iterdir())[: args.count]
+    names = [folder.name for folder in part_dirs(spec)][: args.count]
     counts = np.rint(np.expm1(dataset_corners(args.dataset, names))).astype(int)
     depths = " ".join(f"{d:g} mm" for d in SLICE_DEPTHS_MM)
     print(f"part  contacts  corners at {depths}")
