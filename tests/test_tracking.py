@@ -100,6 +100,19 @@ def test_resuming_into_a_deleted_or_unknown_run_is_refused_with_what_to_do(tiny_
         assert {r.info.run_id for r in MlflowClient().search_runs([experiment])} == before
 
 
+def test_a_store_mlflow_cannot_open_is_refused_with_what_to_do(tiny_data, tmp_path, monkeypatch, mlflow_store):
+    """An unsupported tracking URI stops the run before stage 1 with one message, not MLflow's traceback."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "bogus://store")
+    try:
+        with pytest.raises(PipeError, match=r"^the MLflow store bogus://store could not be opened \(.*unsupported "
+                                            r"URI 'bogus://store'[^.]*\); point mlflow\.tracking_uri or "
+                                            r"MLFLOW_TRACKING_URI at a store MLflow supports"):
+            run_domain(smoke_config(tiny_data, tmp_path))
+    finally:
+        mlflow.set_tracking_uri(mlflow_store)   # use_experiment set MLflow's global store to the bogus one
+    assert not any(path.suffix == ".ckpt" for path in tmp_path.rglob("*"))
+
+
 def test_the_train_and_evaluate_phases_log_into_one_run(tiny_data, tmp_path):
     """DVC's train and evaluate stages: one MLflow run holds the training's curves and the evaluation's
     metrics and model; an evaluation with other settings, or of a trained folder whose run the store lacks,

@@ -93,11 +93,13 @@ def force_choices(choices: dict[int | None, dict]) -> str:
 
 def job_config(cfg: DictConfig) -> None:
     """Complete the composed config in place: the run's folder (Hydra's, of this job), and with `params=`
-    the values of that parameter file (pipe.params); then set the job's threads (pipe.threads)."""
+    the values of that parameter file (pipe.params); check its values (pipe.settings), then set the job's
+    threads (pipe.threads)."""
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import open_dict
 
     from pipe.params import apply_params
+    from pipe.settings import TRAIN_SETTINGS, check_settings
     from pipe.threads import available_cores, job_threads, set_threads
 
     hydra_cfg = HydraConfig.get()
@@ -106,6 +108,7 @@ def job_config(cfg: DictConfig) -> None:
     if cfg.params is not None:
         groups = {name.split("/")[0] for name in hydra_cfg.runtime.choices if not name.startswith("hydra")}
         apply_params(cfg, Path(cfg.paths.root) / cfg.params, groups, list(hydra_cfg.overrides.task))
+    check_settings(cfg, TRAIN_SETTINGS, "python train.py domain=pins seeds=[0,1,2]")
     threads = job_threads(cfg.threads, hydra_cfg.launcher, available_cores())
     if threads is not None:
         set_threads(threads)
@@ -118,8 +121,10 @@ def _predict(cfg: DictConfig) -> None:
     from pipe.cli import console, fail
     from pipe.errors import PipeError, debugging
     from pipe.predict import predict, write_predictions
+    from pipe.settings import PREDICT_SETTINGS, check_settings
 
     try:
+        check_settings(cfg, PREDICT_SETTINGS, "python predict.py mesh=part.stl run=<the run id train.py printed>")
         predictions = predict(cfg)
     except PipeError as err:
         if debugging():

@@ -42,7 +42,13 @@ def use_experiment(cfg: DictConfig) -> str:
     """Point MLflow at the configured store and experiment (created on first use); its id."""
     uri = tracking_uri(cfg.mlflow.tracking_uri, Path(cfg.paths.root))
     mlflow.set_tracking_uri(uri)
-    experiment = mlflow.get_experiment_by_name(cfg.mlflow.experiment)
+    try:
+        experiment = mlflow.get_experiment_by_name(cfg.mlflow.experiment)
+    except MlflowException as exc:
+        first = str(exc).strip().splitlines()[0].split(". ")[0] if str(exc).strip() else type(exc).__name__
+        raise PipeError(f"the MLflow store {uri} could not be opened ({first}); point mlflow.tracking_uri or "
+                        "MLFLOW_TRACKING_URI at a store MLflow supports (e.g. sqlite:///mlflow.db or "
+                        "http://<host>:5000), or turn tracking off with mlflow.enabled=false") from None
     if experiment is not None:
         return experiment.experiment_id
     return mlflow.create_experiment(cfg.mlflow.experiment, artifact_location=artifact_location(uri))

@@ -1,0 +1,134 @@
+"""The values a user sets on the command line, checked before any work.
+
+Hydra composes `seed=abc`, `stages.vae.epochs=-1` or `code.slices=ture` as given. Unchecked, the first stops
+a run with a traceback from deep inside it, the second trains for ever (Lightning reads max_epochs=-1 as no
+limit) and the third turns the slices on (a non-empty string is true). `check_settings` refuses a config
+with every wrong value named in one message, before anything is read or written; a setting the config lacks
+(a plugin's own config) is not checked. Settings with a vocabulary of their own (phase, seeds, the force
+weights, the head's loss, the mesh's axis and unit) are checked where they are read.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from pipe.errors import PipeError
+
+_ABSENT = object()
+
+
+@dataclass(frozen=True)
+class Takes:
+    """What a setting takes: a whole number or any finite number (`kind`) within the bounds, or true or
+    false (`kind="flag"`); null as well where `optional`."""
+
+    kind: str                    # "whole", "number" or "flag"
+    least: float | None = None   # the smallest value allowed
+    above: float | None = None   # the value must be greater than this
+    below: float | None = None   # the value must be smaller than this
+    most: float | None = None    # the largest value allowed
+    optional: bool = False
+
+    def accepts(self, value: Any) -> bool:
+        if value is None:
+            return self.optional
+        if self.kind == "flag":
+            return isinstance(value, bool)
+        if isinstance(value, bool) or not isinstance(value, int if self.kind == "whole" else (int, float)):
+            return False
+        return (math.isfinite(value)
+                and (self.least is None or value >= self.least) and (self.above is None or value > self.above)
+                and (self.below is None or value < self.below) and (self.most is None or value <= self.most))
+
+    def __str__(self) -> str:
+        if self.kind == "flag":
+            return "true or false, or null" if self.optional else "true or false"
+        bounds = []
+        if self.least is not None and self.most is not None:
+            bounds.append(f"from {_shown(self.least)} to {_shown(self.most)}")
+        elif self.least is not None:
+            bounds.append(f"{_shown(self.least)} or more")
+        elif self.most is not None:
+            bounds.append(f"at most {_shown(self.most)}")
+        if self.above is not None:
+            bounds.append(f"above {_shown(self.above)}")
+        if self.below is not None:
+            bounds.append(f"below {_shown(self.below)}")
+        text = "a whole number" if self.kind == "whole" else "a number"
+        text += f", {' and '.join(bounds)}" if bounds else ""
+        return f"{text}, or null" if self.optional else text
+
+
+def _shown(bound: float) -> str:
+    """A bound as written: 4294967295, not 4.29497e+09."""
+    return str(int(bound)) if float(bound).is_integer() else f"{bound:g}"
+
+
+WHOLE_FROM_0 = Takes("whole", least=0)
+WHOLE_FROM_1 = Takes("whole", least=1)
+POSITIVE = Takes("number", above=0)
+NOT_NEGATIVE = Takes("number", least=0)
+FLAG = Takes("flag")
+SEED = Takes("whole", least=0, most=2**32 - 1)   # numpy's seeds, which Lightning's seed_everything sets too
+
+TRAIN_SETTINGS: Mapping[str, Takes] = {
+    "seed": SEED,
+    "threads": Takes("whole", least=1, optional=True),
+    "data.points": WHOLE_FROM_1,
+    "data.cloud_seed": SEED,
+    "data.rate_hz": POSITIVE,
+    "data.steady_samples": WHOLE_FROM_0,
+    "data.align_final_depth": FLAG,
+    "data.generate.seed": SEED,
+    "data.generate.count": WHOLE_FROM_1,
+    "stages.vae.epochs": WHOLE_FROM_1,
+    "stages.vae.batch_size": WHOLE_FROM_1,
+    "stages.vae.lr": POSITIVE,
+    "stages.vae.kl_weight": NOT_NEGATIVE,
+    "stages.head.epochs": WHOLE_FROM_1,
+    "stages.head.batch_size": WHOLE_FROM_1,
+    "stages.head.lr": POSITIVE,
+    "code.sections": FLAG,
+    "code.slices": FLAG,
+    "evaluation.identification.restarts": WHOLE_FROM_1,
+    "evaluation.identification.check_every": WHOLE_FROM_1,
+    "evaluation.identification.tolerance": POSITIVE,
+    "evaluation.identification.max_evaluations": WHOLE_FROM_1,
+    "evaluation.identification.history": WHOLE_FROM_1,
+    "evaluation.identification.ridge": NOT_NEGATIVE,
+    "evaluation.identification.workers": Takes("whole", least=1, optional=True),
+    "evaluation.identification.via_mse": FLAG,
+    "evaluation.identification.neutral_jitter": NOT_NEGATIVE,
+    "evaluation.blackbox_steps": WHOLE_FROM_1,
+    "evaluation.blackbox_clip": FLAG,
+    "evaluation.band.level": Takes("number", above=0, below=1),
+    "evaluation.band.samples": Takes("whole", least=2),    # quantiles of one draw would make a band of width 0
+    "evaluation.band.seed": SEED,
+    "mlflow.enabled": FLAG,
+}
+
+PREDICT_SETTINGS: Mapping[str, Takes] = {
+    "ramp.depth_mm": Takes("number", above=0, optional=True),
+    "ramp.speed_mm_s": POSITIVE,
+    "ramp.rest_s": NOT_NEGATIVE,
+    "ramp.hold_s": NOT_NEGATIVE,
+}
+
+
+def check_settings(cfg: DictConfig, settings: Mapping[str, Takes], example: str) -> None:
+    """Raise a PipeError naming every required value not given (`???` in the config; `example` shows a
+    command that gives them) and every setting of `settings` whose value it does not take."""
+    if missing := sorted(OmegaConf.missing_keys(cfg)):
+        raise PipeError(f"{' and '.join(f'{key}=' for key in missing)} must be given, e.g. {example}")
+    wrong = []
+    for key, takes in settings.items():
+        value = OmegaConf.select(cfg, key, default=_ABSENT)
+        if value is not _ABSENT and not takes.accepts(value):
+            wrong.append(f"{key} takes {takes}, not {value!r}")
+    if wrong:
+        raise PipeError("; ".join(wrong))

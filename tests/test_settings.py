@@ -1,0 +1,95 @@
+"""The command line's values checked before any work (pipe.settings): what each setting takes, every shipped
+config passing, and train.py and predict.py refusing wrong values with one message and exit status 2."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import pytest
+from conftest import ROOT, compose_config
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+
+from pipe.errors import PipeError
+from pipe.settings import PREDICT_SETTINGS, TRAIN_SETTINGS, Takes, check_settings
+
+
+@pytest.mark.parametrize(("takes", "accepted", "refused"), [
+    (Takes("whole", least=1), [1, 7, 2**40], [0, -1, 1.0, 2.5, True, "3", None, [1]]),
+    (Takes("whole", least=0, most=9), [0, 9], [-1, 10]),
+    (Takes("number", above=0), [1e-12, 2, 3.5], [0, 0.0, -1e-9, math.inf, math.nan, False, "1e-4"]),
+    (Takes("number", above=0, below=1), [0.5, 0.9], [0, 1, 1.5]),
+    (Takes("number", least=0), [0, 0.0, 4], [-0.5]),
+    (Takes("flag"), [True, False], ["ture", "true", 1, 0, None]),
+    (Takes("whole", least=1, optional=True), [None, 3], [0, "auto"]),
+])
+def test_what_a_setting_takes(takes, accepted, refused):
+    assert all(takes.accepts(value) for value in accepted)
+    assert not any(takes.accepts(value) for value in refused)
+
+
+def test_what_a_setting_takes_reads_as_its_message_says():
+    assert str(Takes("whole", least=0, most=2**32 - 1)) == "a whole number, from 0 to 4294967295"
+    assert str(Takes("whole", least=1, optional=True)) == "a whole number, 1 or more, or null"
+    assert str(Takes("number", above=0, below=1)) == "a number, above 0 and below 1"
+    assert str(Takes("number", least=0)) == "a number, 0 or more"
+    assert str(Takes("number", above=1e-4)) == "a number, above 0.0001"
+    assert str(Takes("flag")) == "true or false"
+
+
+@pytest.mark.parametrize("overrides", [[], ["experiment=paper"], ["experiment=smoke"], ["experiment=ci"],
+                                       ["data=family"], ["data.generate=null"], ["threads=1"]])
+def test_every_shipped_training_config_passes(overrides):
+    check_settings(compose_config(overrides), TRAIN_SETTINGS, "")
+
+
+def test_the_pipeline_and_predict_configs_pass():
+    with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
+        check_settings(compose(config_name="pipeline"), TRAIN_SETTINGS, "")
+        check_settings(compose(config_name="predict", overrides=["mesh=a.stl", "run=abc"]), PREDICT_SETTINGS, "")
+
+
+def test_every_wrong_value_is_named_in_one_message():
+    cfg = compose_config(["seed=abc", "stages.vae.epochs=-1", "code.slices=ture", "evaluation.band.level=1"])
+    with pytest.raises(PipeError) as caught:
+        check_settings(cfg, TRAIN_SETTINGS, "")
+    assert str(caught.value) == ("seed takes a whole number, from 0 to 4294967295, not 'abc'; "
+                                 "stages.vae.epochs takes a whole number, 1 or more, not -1; "
+                                 "code.slices takes true or false, not 'ture'; "
+                                 "evaluation.band.level takes a number, above 0 and below 1, not 1")
+
+
+def test_a_setting_the_config_lacks_is_not_checked_and_a_missing_value_is_named():
+    check_settings(OmegaConf.create({"seed": 0}), TRAIN_SETTINGS, "")   # a config without stages, data, ...
+    with pytest.raises(PipeError, match=r"^mesh= and run= must be given, e\.g\. predict\.py mesh=a\.stl run=1$"):
+        check_settings(OmegaConf.create({"mesh": "???", "run": "???"}), PREDICT_SETTINGS, "predict.py mesh=a.stl run=1")
+
+
+def test_train_refuses_wrong_values_before_any_work(tmp_path):
+    run = tmp_path / "run"
+    result = subprocess.run([sys.executable, str(ROOT / "train.py"), "threads=-3", "stages.head.epochs=-1",
+                             f"data.dir={tmp_path / 'no_data'}", f"hydra.run.dir={run}"],
+                            capture_output=True, text=True, cwd="/", timeout=300)
+    assert result.returncode == 2, result.stderr[-2000:]
+    message = " ".join(result.stderr.split())
+    assert ("threads takes a whole number, 1 or more, or null, not -3; "
+            "stages.head.epochs takes a whole number, 1 or more, not -1") in message
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "no_data").exists()                  # no dataset generated, nothing trained
+    assert not any(path.suffix == ".ckpt" for path in run.rglob("*"))
+
+
+def run_predict(*overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "predict.py"), *overrides], capture_output=True, text=True,
+                          cwd="/", timeout=300)
+
+
+def test_predict_names_what_it_must_be_given_and_a_wrong_ramp_before_reading_the_model(tmp_path):
+    missing = run_predict("mesh=part.stl", f"hydra.run.dir={tmp_path / 'a'}")
+    assert missing.returncode == 2 and "Traceback" not in missing.stderr
+    assert "error: run= must be given, e.g. python predict.py mesh=part.stl run=" in missing.stderr
+    ramp = run_predict("mesh=part.stl", "run=no-such-run", "ramp.speed_mm_s=0", f"hydra.run.dir={tmp_path / 'b'}")
+    assert ramp.returncode == 2 and "Traceback" not in ramp.stderr
+    assert "error: ramp.speed_mm_s takes a number, above 0, not 0" in ramp.stderr
