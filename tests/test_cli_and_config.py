@@ -100,6 +100,17 @@ def test_cli_user_errors_exit_nonzero_without_traceback(tmp_path, capsys):
     assert "Traceback" not in err
 
 
+@pytest.mark.parametrize(("argv", "message"), [
+    (["data", "pointcloud", "part.stl", "--points", "0"], "argument --points: takes a whole number, 1 or more"),
+    (["data", "generate", "out", "--seed", "-1"], "argument --seed: takes a whole number, from 0 to 4294967295"),
+    (["data", "preprocess", "a", "b", "--rate-hz", "nan"], "argument --rate-hz: takes a number, above 0, not 'nan'"),
+])
+def test_cli_number_options_say_what_they_take(argv, message, capsys):
+    with pytest.raises(SystemExit) as stopped:
+        main(argv)
+    assert stopped.value.code == 2 and message in capsys.readouterr().err
+
+
 def run_train(*overrides: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(ROOT / "train.py"), *overrides], capture_output=True, text=True,
                           cwd="/", timeout=300)

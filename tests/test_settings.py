@@ -3,6 +3,7 @@ config passing, and train.py and predict.py refusing wrong values with one messa
 
 from __future__ import annotations
 
+import argparse
 import math
 import subprocess
 import sys
@@ -13,7 +14,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from pipe.errors import PipeError
-from pipe.settings import PREDICT_SETTINGS, TRAIN_SETTINGS, Takes, check_settings
+from pipe.settings import POSITIVE, PREDICT_SETTINGS, TRAIN_SETTINGS, WHOLE_FROM_1, Takes, argument_type, check_settings
 
 
 @pytest.mark.parametrize(("takes", "accepted", "refused"), [
@@ -37,6 +38,14 @@ def test_what_a_setting_takes_reads_as_its_message_says():
     assert str(Takes("number", least=0)) == "a number, 0 or more"
     assert str(Takes("number", above=1e-4)) == "a number, above 0.0001"
     assert str(Takes("flag")) == "true or false"
+
+
+def test_a_number_option_reads_its_text_as_the_setting_takes_it():
+    assert argument_type(WHOLE_FROM_1)("12") == 12 and isinstance(argument_type(WHOLE_FROM_1)("12"), int)
+    assert argument_type(POSITIVE)("1e-4") == 1e-4
+    for takes, text in ((WHOLE_FROM_1, "1.5"), (WHOLE_FROM_1, "0"), (POSITIVE, "inf"), (POSITIVE, "-2")):
+        with pytest.raises(argparse.ArgumentTypeError, match=rf"^takes {takes}, not '{text}'$"):
+            argument_type(takes)(text)
 
 
 @pytest.mark.parametrize("overrides", [[], ["experiment=paper"], ["experiment=smoke"], ["experiment=ci"],

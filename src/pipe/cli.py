@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from pipe.errors import PipeError, debugging
+from pipe.settings import POSITIVE, SEED, WHOLE_FROM_0, WHOLE_FROM_1, argument_type
 
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
 
@@ -245,11 +246,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     gen = verbs.add_parser("generate", help="write the synthetic dataset of the paper's 27 parts, or of a family")
     gen.add_argument("out", type=Path, help="output folder (a generated dataset there is replaced)")
-    gen.add_argument("--seed", type=int, default=0)
+    gen.add_argument("--seed", type=argument_type(SEED), default=0)
     chosen = gen.add_mutually_exclusive_group()
     chosen.add_argument("--parts", help="comma-separated part names (default: all 27)")
     chosen.add_argument("--family", help="parts of a parametric family instead: dsub, rect or pins (docs/synthetic.md)")
-    gen.add_argument("--count", type=int, help="how many parts of the family (default 100)")
+    gen.add_argument("--count", type=argument_type(WHOLE_FROM_1), help="how many parts of the family (default 100)")
     gen.set_defaults(run=cmd_generate)
 
     add_import_parser(verbs)
@@ -261,11 +262,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     cloud = verbs.add_parser("pointcloud", help="sample a mesh into the centred point cloud the encoder sees")
     cloud.add_argument("mesh", type=Path)
-    cloud.add_argument("--points", type=int, default=1024)
+    cloud.add_argument("--points", type=argument_type(WHOLE_FROM_1), default=1024)
     cloud.add_argument("--units", default="auto", help="length unit of the mesh file, or 'auto' (default)")
     cloud.add_argument("--axis", default="z", choices=INSERTION_AXES,
                        help="the mesh's insertion axis, turned onto z (default z; principal: its long axis)")
-    cloud.add_argument("--seed", type=int, default=0)
+    cloud.add_argument("--seed", type=argument_type(SEED), default=0)
     cloud.add_argument("--out", type=Path, help="write the points (n x 3, mm) as .npy")
     cloud.set_defaults(run=cmd_pointcloud)
 
@@ -273,11 +274,14 @@ def build_parser() -> argparse.ArgumentParser:
                                                "folder that training reads with data.prepared=<folder>")
     prep.add_argument("dataset", type=Path)
     prep.add_argument("out", type=Path, help="output folder (preprocessed parts written there before are replaced)")
-    prep.add_argument("--points", type=int, help="points per cloud (default: train.py's data.points)")
-    prep.add_argument("--cloud-seed", type=int, help="seed of the cloud sampling (default: data.cloud_seed)")
-    prep.add_argument("--rate-hz", type=float, help="sample rate of the profiles (default: data.rate_hz)")
-    prep.add_argument("--steady-samples", type=int, help="copies of the final value appended (default: "
-                                                          "data.steady_samples)")
+    prep.add_argument("--points", type=argument_type(WHOLE_FROM_1),
+                      help="points per cloud (default: train.py's data.points)")
+    prep.add_argument("--cloud-seed", type=argument_type(SEED),
+                      help="seed of the cloud sampling (default: data.cloud_seed)")
+    prep.add_argument("--rate-hz", type=argument_type(POSITIVE),
+                      help="sample rate of the profiles (default: data.rate_hz)")
+    prep.add_argument("--steady-samples", type=argument_type(WHOLE_FROM_0),
+                      help="copies of the final value appended (default: data.steady_samples)")
     prep.set_defaults(run=cmd_preprocess)
 
     params = kinds.add_parser("params", help="compose the DVC pipeline's params.yaml from conf/, as `dvc exp run -S` "

@@ -5,13 +5,15 @@ a run with a traceback from deep inside it, the second trains for ever (Lightnin
 limit) and the third turns the slices on (a non-empty string is true). `check_settings` refuses a config
 with every wrong value named in one message, before anything is read or written; a setting the config lacks
 (a plugin's own config) is not checked. Settings with a vocabulary of their own (phase, seeds, the force
-weights, the head's loss, the mesh's axis and unit) are checked where they are read.
+weights, the head's loss, the mesh's axis and unit) are checked where they are read. The `pipe` command's
+number options take the same vocabulary (`argument_type`).
 """
 
 from __future__ import annotations
 
+import argparse
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -132,3 +134,17 @@ def check_settings(cfg: DictConfig, settings: Mapping[str, Takes], example: str)
             wrong.append(f"{key} takes {takes}, not {value!r}")
     if wrong:
         raise PipeError("; ".join(wrong))
+
+
+def argument_type(takes: Takes) -> Callable[[str], int | float]:
+    """An argparse `type` for a number option: the text read as a whole number or a number, refused (argparse's
+    usage error, exit status 2) with what the option takes."""
+    def parse(text: str) -> int | float:
+        try:
+            value = int(text) if takes.kind == "whole" else float(text)
+        except ValueError:
+            value = None
+        if value is None or not takes.accepts(value):
+            raise argparse.ArgumentTypeError(f"takes {takes}, not {text!r}")
+        return value
+    return parse
