@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import subprocess
 import sys
 
@@ -44,7 +45,7 @@ def test_a_number_option_reads_its_text_as_the_setting_takes_it():
     assert argument_type(WHOLE_FROM_1)("12") == 12 and isinstance(argument_type(WHOLE_FROM_1)("12"), int)
     assert argument_type(POSITIVE)("1e-4") == 1e-4
     for takes, text in ((WHOLE_FROM_1, "1.5"), (WHOLE_FROM_1, "0"), (POSITIVE, "inf"), (POSITIVE, "-2")):
-        with pytest.raises(argparse.ArgumentTypeError, match=rf"^takes {takes}, not '{text}'$"):
+        with pytest.raises(argparse.ArgumentTypeError, match=rf"^takes {re.escape(str(takes))}, not '{text}'$"):
             argument_type(takes)(text)
 
 

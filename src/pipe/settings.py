@@ -3,10 +3,10 @@
 Hydra composes `seed=abc`, `stages.vae.epochs=-1` or `code.slices=ture` as given. Unchecked, the first stops
 a run with a traceback from deep inside it, the second trains for ever (Lightning reads max_epochs=-1 as no
 limit) and the third turns the slices on (a non-empty string is true). `check_settings` refuses a config
-with every wrong value named in one message, before anything is read or written; a setting the config lacks
-(a plugin's own config) is not checked. Settings with a vocabulary of their own (phase, seeds, the force
-weights, the head's loss, the mesh's axis and unit) are checked where they are read. The `pipe` command's
-number options take the same vocabulary (`argument_type`).
+with every wrong value named in one message, before any data is read or generated and before any training;
+a setting the config lacks (a plugin's own config) is not checked. Settings with a vocabulary of their own
+(phase, seeds, the force weights, the head's loss, the mesh's axis and unit) are checked where they are
+read. The `pipe` command's number options take the same vocabulary (`argument_type`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import argparse
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -29,7 +29,7 @@ class Takes:
     """What a setting takes: a whole number or any finite number (`kind`) within the bounds, or true or
     false (`kind="flag"`); null as well where `optional`."""
 
-    kind: str                    # "whole", "number" or "flag"
+    kind: Literal["whole", "number", "flag"]
     least: float | None = None   # the smallest value allowed
     above: float | None = None   # the value must be greater than this
     below: float | None = None   # the value must be smaller than this
