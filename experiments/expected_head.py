@@ -246,12 +246,10 @@ def main() -> None:
                                         or args.components < 1):
         raise SystemExit("--components K compacts the hand-made input: give --input sections+slices, no "
                          "--with-parameters, and K of 1 or more")
-    if args.lead_in and (args.input != "sections+slices" or args.with_parameters or args.components is not None):
-        raise SystemExit("--lead-in fills the hand-made input's code of zeros: give --input sections+slices, and "
-                         "neither --with-parameters nor --components")
-    if args.corners and (args.input != "sections+slices" or args.with_parameters or args.components is not None):
-        raise SystemExit("--corners fills the hand-made input's code of zeros: give --input sections+slices, and "
-                         "neither --with-parameters nor --components")
+    for flag, given in (("--lead-in", args.lead_in), ("--corners", args.corners)):
+        if given and (args.input != "sections+slices" or args.with_parameters or args.components is not None):
+            raise SystemExit(f"{flag} fills the hand-made input's code of zeros: give --input sections+slices, and "
+                             "neither --with-parameters nor --components")
     targets = [target for target in args.targets.split(",") if target]     # none: the twins' targets alone
     if unknown := set(targets) - set(TARGETS):
         raise SystemExit(f"unknown target {', '.join(sorted(unknown))}: the targets are {', '.join(TARGETS)}")

@@ -131,6 +131,19 @@ def test_train_names_missing_parts_and_exits_nonzero(small_dataset, tmp_path):
     assert "needs part(s)" in result.stderr and "Traceback" not in result.stderr
 
 
+def test_train_refuses_wrong_values_before_any_work(tmp_path):
+    run = tmp_path / "run"
+    result = run_train("threads=-3", "stages.head.epochs=-1", f"data.dir={tmp_path / 'no_data'}",
+                       f"hydra.run.dir={run}")
+    assert result.returncode == 2, result.stderr[-2000:]
+    message = " ".join(result.stderr.split())
+    assert ("threads takes a whole number, 1 or more, or null, not -3; "
+            "stages.head.epochs takes a whole number, 1 or more, not -1") in message
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "no_data").exists()                  # no dataset generated, nothing trained
+    assert not any(path.suffix == ".ckpt" for path in run.rglob("*"))
+
+
 def test_train_reports_unknown_config_option(tmp_path):
     result = run_train("domain=nope", f"hydra.run.dir={tmp_path / 'run'}")
     assert result.returncode != 0

@@ -20,6 +20,15 @@ def run_predict(*args: str) -> subprocess.CompletedProcess:
                           timeout=300, cwd="/", env=os.environ)
 
 
+def test_predict_names_what_it_must_be_given_and_a_wrong_ramp_before_reading_the_model(tmp_path):
+    missing = run_predict("mesh=part.stl", f"hydra.run.dir={tmp_path / 'a'}")
+    assert missing.returncode == 2 and "Traceback" not in missing.stderr
+    assert "error: run= must be given, e.g. python predict.py mesh=part.stl run=" in missing.stderr
+    ramp = run_predict("mesh=part.stl", "run=no-such-run", "ramp.speed_mm_s=0", f"hydra.run.dir={tmp_path / 'b'}")
+    assert ramp.returncode == 2 and "Traceback" not in ramp.stderr
+    assert "error: ramp.speed_mm_s takes a number, above 0, not 0" in ramp.stderr
+
+
 @pytest.mark.slow
 def test_predict_on_real_meshes_in_both_units(trained_run, real_meshes, tmp_path):
     for name in ("labit_positioning_pin_d5_20.stl", "factory_round_peg_8mm_tight.obj"):
