@@ -144,6 +144,31 @@ def test_train_refuses_wrong_values_before_any_work(tmp_path):
     assert not any(path.suffix == ".ckpt" for path in run.rglob("*"))
 
 
+def test_a_recorded_dataset_is_never_generated_and_its_missing_folder_is_named(tmp_path):
+    from pipe.pipeline import ensure_dataset
+
+    recorded = {"dir": "mylab", "generate": None}
+    with pytest.raises(PipeError, match=r"/mylab: no such folder; point data\.dir at a dataset folder"):
+        ensure_dataset(recorded, tmp_path)
+    assert not (tmp_path / "mylab").exists()
+    (tmp_path / "mylab").mkdir()
+    with pytest.raises(PipeError, match=r"/mylab: no dataset\.yaml in this folder; point data\.dir"):
+        ensure_dataset(recorded, tmp_path)
+    assert list((tmp_path / "mylab").iterdir()) == []
+
+
+def test_train_with_data_recorded_needs_the_folder_and_refuses_a_missing_one(tmp_path):
+    """`data=recorded` (README, "Bringing your own recordings"): data.dir must be given, and a mistyped one is
+    named instead of receiving the synthetic dataset, as the default data config would write it there."""
+    without = run_train("data=recorded", f"hydra.run.dir={tmp_path / 'run'}")
+    assert without.returncode == 2 and "Traceback" not in without.stderr
+    assert "data.dir= must be given, e.g. python train.py data=recorded data.dir=data/mylab" in without.stderr
+    typo = run_train("data=recorded", f"data.dir={tmp_path / 'mylba'}", f"hydra.run.dir={tmp_path / 'run'}")
+    assert typo.returncode != 0 and "Traceback" not in typo.stderr
+    assert f"{tmp_path / 'mylba'}: no such folder" in " ".join(typo.stderr.split())
+    assert not (tmp_path / "mylba").exists()
+
+
 def test_train_reports_unknown_config_option(tmp_path):
     result = run_train("domain=nope", f"hydra.run.dir={tmp_path / 'run'}")
     assert result.returncode != 0

@@ -49,7 +49,8 @@ def test_a_number_option_reads_its_text_as_the_setting_takes_it():
 
 
 @pytest.mark.parametrize("overrides", [[], ["experiment=paper"], ["experiment=smoke"], ["experiment=ci"],
-                                       ["data=family"], ["data.generate=null"], ["threads=1"]])
+                                       ["data=family"], ["data=recorded", "data.dir=x"], ["data.generate=null"],
+                                       ["threads=1"]])
 def test_every_shipped_training_config_passes(overrides):
     check_settings(compose_config(overrides), TRAIN_SETTINGS, "")
 
@@ -74,3 +75,6 @@ def test_a_setting_the_config_lacks_is_not_checked_and_a_missing_value_is_named(
     check_settings(OmegaConf.create({"seed": 0}), TRAIN_SETTINGS, "")   # a config without stages, data, ...
     with pytest.raises(PipeError, match=r"^mesh= and run= must be given, e\.g\. predict\.py mesh=a\.stl run=1$"):
         check_settings(OmegaConf.create({"mesh": "???", "run": "???"}), PREDICT_SETTINGS, "predict.py mesh=a.stl run=1")
+    # an example that does not name every missing value is not shown
+    with pytest.raises(PipeError, match=r"^mesh= and run= must be given, on the command line as key=value$"):
+        check_settings(OmegaConf.create({"mesh": "???", "run": "???"}), PREDICT_SETTINGS, "predict.py mesh=a.stl")

@@ -108,7 +108,7 @@ def job_config(cfg: DictConfig) -> None:
     if cfg.params is not None:
         groups = {name.split("/")[0] for name in hydra_cfg.runtime.choices if not name.startswith("hydra")}
         apply_params(cfg, Path(cfg.paths.root) / cfg.params, groups, list(hydra_cfg.overrides.task))
-    check_settings(cfg, TRAIN_SETTINGS, "python train.py domain=pins seeds=[0,1,2]")
+    check_settings(cfg, TRAIN_SETTINGS, "python train.py data=recorded data.dir=data/mylab domain.name=mylab ...")
     threads = job_threads(cfg.threads, hydra_cfg.launcher, available_cores())
     if threads is not None:
         set_threads(threads)

@@ -132,7 +132,7 @@ def cmd_preprocess(args: argparse.Namespace) -> int:
 
     from pipe.data.prepared import PreprocessSettings, write_prepared
 
-    defaults = OmegaConf.load(files("pipe.conf").joinpath("data", "synthetic.yaml"))   # train.py's defaults
+    defaults = OmegaConf.load(files("pipe.conf").joinpath("data", "recorded.yaml"))   # train.py's data settings
     given = {name: getattr(args, name) for name in ("points", "cloud_seed", "rate_hz", "steady_samples")}
     settings = PreprocessSettings.from_config({k: defaults[k] if v is None else v for k, v in given.items()})
     parts = write_prepared(args.dataset, args.out, settings)

@@ -155,12 +155,13 @@ class SeedsResult:
 
 def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path) -> Path:
     """The dataset folder (a relative `dir` from the project root); a synthetic one (the catalogue, or `count`
-    parts of a `family`) is generated first when it is missing."""
+    parts of a `family`) is generated first when it is missing, a recorded one (`generate` null) is refused."""
     root = project_root / data_cfg["dir"]
     if not (root / SPEC_FILE).is_file():
         generate = data_cfg.get("generate")
         if generate is None:
-            raise PipeError(f"no {SPEC_FILE} here; point data.dir at a dataset folder", root)
+            problem = f"no {SPEC_FILE} in this folder" if root.is_dir() else "no such folder"
+            raise PipeError(f"{problem}; point data.dir at a dataset folder (`pipe data import` writes one)", root)
         family = generate.get("family")
         log.info("generating the synthetic dataset%s into %s (seed %s)",
                  f" of {generate['count']} {family} parts" if family else "", root, generate["seed"])

@@ -123,10 +123,12 @@ PREDICT_SETTINGS: Mapping[str, Takes] = {
 
 
 def check_settings(cfg: DictConfig, settings: Mapping[str, Takes], example: str) -> None:
-    """Raise a PipeError naming every required value not given (`???` in the config; `example` shows a
-    command that gives them) and every setting of `settings` whose value it does not take."""
+    """Raise a PipeError naming every required value not given (`???` in the config; `example`, a command that
+    gives them, is shown where it names them all) and every setting of `settings` whose value it does not take."""
     if missing := sorted(OmegaConf.missing_keys(cfg)):
-        raise PipeError(f"{' and '.join(f'{key}=' for key in missing)} must be given, e.g. {example}")
+        given = [f"{key}=" for key in missing]
+        how = f"e.g. {example}" if all(key in example for key in given) else "on the command line as key=value"
+        raise PipeError(f"{' and '.join(given)} must be given, {how}")
     wrong = []
     for key, takes in settings.items():
         value = OmegaConf.select(cfg, key, default=_ABSENT)
