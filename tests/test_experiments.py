@@ -3,9 +3,12 @@ row differs from the run's own result by the variant alone, and their summary co
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import os
+import runpy
 import statistics
 import subprocess
 import sys
@@ -13,13 +16,48 @@ import sys
 import pytest
 from conftest import ROOT, smoke_config
 
+EXPERIMENTS = ROOT / "experiments"
+
 
 def run_script(*args: str) -> str:
+    """What a script that trains or scores prints, run as `python <script>` in its own process (its threads,
+    seeds and simulator backend stay its own)."""
     env = {**os.environ, "PROJECT_ROOT": str(ROOT)}
-    done = subprocess.run([sys.executable, *args], cwd=ROOT / "experiments", env=env, capture_output=True,
+    done = subprocess.run([sys.executable, *args], cwd=EXPERIMENTS, env=env, capture_output=True,
                           text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     return done.stdout
+
+
+def run_here(script: str, *args: str) -> subprocess.CompletedProcess:
+    """`python <script> <args>` run in this process, for what finishes before any work (a table of rows, a
+    refusal): as its own process would run it (argv, the experiments folder as cwd and first on the import path,
+    the message of a SystemExit on stderr with status 1) without importing the whole stack again (7 s each).
+    The methods a script registers (gpr_cv.py's) are taken out of the registry again."""
+    from pipe.evaluation.methods import METHODS
+
+    stdout, stderr = io.StringIO(), io.StringIO()
+    saved_argv, saved_path, saved_root = sys.argv, list(sys.path), os.environ.get("PROJECT_ROOT")
+    saved_methods = dict(METHODS._classes)
+    sys.argv, sys.path[:0] = [script, *args], [str(EXPERIMENTS)]
+    status = 0
+    try:
+        with contextlib.chdir(EXPERIMENTS), contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            try:
+                runpy.run_path(str(EXPERIMENTS / script), run_name="__main__")
+            except SystemExit as stop:
+                status = stop.code if isinstance(stop.code, int) else 0 if stop.code is None else 1
+                if not isinstance(stop.code, int | None):
+                    print(stop.code, file=sys.stderr)
+    finally:
+        sys.argv, sys.path[:] = saved_argv, saved_path
+        METHODS._classes.clear()
+        METHODS._classes.update(saved_methods)
+        if saved_root is None:
+            os.environ.pop("PROJECT_ROOT", None)
+        else:
+            os.environ["PROJECT_ROOT"] = saved_root
+    return subprocess.CompletedProcess([script, *args], status, stdout.getvalue(), stderr.getvalue())
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +74,9 @@ def printed_table(script: str, rows: list[dict], tmp_path, *args: str) -> str:
     """What `script` prints for `rows` written to a JSON lines file (its --table, or summarise.py's output)."""
     rows_file = tmp_path / "rows.jsonl"
     rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
-    return run_script(script, str(rows_file), *args)
+    done = run_here(script, str(rows_file), *args)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
 
 
 @pytest.mark.slow
@@ -87,17 +127,14 @@ def test_stage2_variants_default_reproduces_the_runs_own_result(trained_run, tmp
     ("part_cv.py", "sections=-1", "at least 0"),
     ("part_cv.py", "select=fit", "unsupported variant"), ("part_cv.py", "loss=mse+std", "unsupported variant")])
 def test_experiment_scripts_refuse_a_variant_they_cannot_run_before_any_run(script, spec, message, tmp_path):
-    done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), "no/such/run",
-                           "--variants", f"default,{spec}"], cwd=ROOT / "experiments", capture_output=True,
-                          text=True, timeout=120)
+    done = run_here(script, str(tmp_path / "rows.jsonl"), "no/such/run", "--variants", f"default,{spec}")
     assert done.returncode != 0 and message in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
 
 
 @pytest.mark.parametrize("script", ["part_cv.py", "stage2_variants.py"])
 def test_experiment_scripts_name_a_run_folder_that_is_not_one(script, tmp_path):
-    done = subprocess.run([sys.executable, script, str(tmp_path / "rows.jsonl"), "no/such/run", "--variants",
-                           "default"], cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
+    done = run_here(script, str(tmp_path / "rows.jsonl"), "no/such/run", "--variants", "default")
     assert done.returncode != 0 and "Traceback" not in done.stderr
     assert "no/such/run: not a trained folder of train.py (no config.yaml in it)" in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
@@ -169,8 +206,7 @@ def write_curve_run(folder, family: str, count: int, seed: int, objective: float
     (["0=runs/a"], "at least two candidates"), (["0=runs/a", "runs/b"], "at least two candidates"),
     (["0=no/such/folder", "1000=nor/this"], "no domain has a finished run")])
 def test_force_selection_refuses_candidates_it_cannot_compare(candidates, message, tmp_path):
-    done = subprocess.run([sys.executable, "force_selection.py", str(tmp_path / "out.json"), *candidates],
-                          cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
+    done = run_here("force_selection.py", str(tmp_path / "out.json"), *candidates)
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "out.json").exists()
 
@@ -417,7 +453,7 @@ def test_gpr_targets_neutral_start_is_the_runs_gpr_and_a_perturbed_start_moves_t
     assert (best_first["draws"], best_second["draws"]) == ([1], [2])
     assert best_first["gpr"] == pytest.approx(moved[0]["gpr"], abs=1e-6)
     assert best_second["gpr"] == pytest.approx(moved[1]["gpr"], abs=1e-6)
-    table = run_script("gpr_targets.py", str(moved_file), "--table")
+    table = run_here("gpr_targets.py", str(moved_file), "--table").stdout
     assert f"| {neutral['gpr']:.2f} ± 0.00 |" in table
 
 
@@ -1264,8 +1300,7 @@ def test_expected_head_trains_each_target_on_its_own_parts_in_order():
     (["--input", "sections+slices", "--lead-in", "--with-parameters", "taper"], "neither --with-parameters"),
     (["--bottleneck", "0"], "1 or more")])
 def test_expected_head_refuses_what_it_cannot_run_before_any_work(args, message, tmp_path):
-    done = subprocess.run([sys.executable, "expected_head.py", str(tmp_path / "rows.jsonl"), *args],
-                          cwd=ROOT / "experiments", capture_output=True, text=True, timeout=120)
+    done = run_here("expected_head.py", str(tmp_path / "rows.jsonl"), *args)
     assert done.returncode != 0 and message in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
 

@@ -48,6 +48,23 @@ def test_a_name_taken_twice_or_missing_is_refused():
     assert things.register(A) is A and list(things) == ["a"]
 
 
+def test_a_plugin_module_reloaded_registers_its_classes_again(tmp_path, monkeypatch):
+    """importlib.reload (a notebook's autoreload) defines a plugin's classes anew: the new ones replace theirs."""
+    import importlib
+
+    (tmp_path / "thing_registry.py").write_text("from pipe.registry import Registry\nTHINGS = Registry('thing')\n")
+    (tmp_path / "thing_plugin.py").write_text("from thing_registry import THINGS\n\n@THINGS.register\n"
+                                              "class A:\n    name = 'a'\n")
+    monkeypatch.syspath_prepend(tmp_path)
+    plugin = importlib.import_module("thing_plugin")
+    first = plugin.A
+    importlib.reload(plugin)
+    things = importlib.import_module("thing_registry").THINGS
+    assert plugin.A is not first and things["a"] is plugin.A and list(things) == ["a"]
+    with pytest.raises(PipeError, match="two things are named 'a': thing_plugin and tests"):
+        things.register(type("A", (), {"name": "a", "__module__": "tests"}))
+
+
 def test_a_plugin_that_fails_to_import_is_named(entry_points):
     entry_points(EntryPoint("broken", "no_such_pipe_plugin_module", registry.ENTRY_POINT_GROUP),
                  EntryPoint("other", "json", "some.other.group"))

@@ -58,6 +58,11 @@ def load_plugins() -> tuple[str, ...]:
     return tuple(ep.name for ep in plugin_entry_points())
 
 
+def _where(cls: type) -> tuple[str, str]:
+    """The module and qualified name a class is defined under."""
+    return cls.__module__, cls.__qualname__
+
+
 class Registry(Generic[T]):
     """Classes of one kind by name; installed plugins are loaded before a name is looked up."""
 
@@ -66,11 +71,12 @@ class Registry(Generic[T]):
         self._classes: dict[str, T] = {}
 
     def register(self, cls: T) -> T:
-        """Class decorator: register `cls` under its `name` attribute."""
+        """Class decorator: register `cls` under its `name` attribute. The same class defined again (its module
+        reloaded, or run again as a script) replaces the one registered; another class of that name is refused."""
         name = getattr(cls, "name", None)
         if not isinstance(name, str) or not name:
             raise TypeError(f"{cls.__qualname__} needs a `name` to be registered as a {self.kind}")
-        if name in self._classes and self._classes[name] is not cls:
+        if name in self._classes and _where(self._classes[name]) != _where(cls):
             raise PipeError(f"two {self.kind}s are named {name!r}: {self._classes[name].__module__} and "
                             f"{cls.__module__}")
         self._classes[name] = cls
