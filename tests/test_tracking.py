@@ -19,7 +19,7 @@ from pipe.data.folders import dataset_version
 from pipe.errors import PipeError
 from pipe.pipeline import run_domain
 from pipe.predict import load_pytorch_flavor
-from pipe.tracking import flatten
+from pipe.tracking import flatten, use_experiment
 
 
 def test_a_domain_run_records_params_metrics_tags_artifacts_and_model(trained_run, tiny_data):
@@ -111,6 +111,18 @@ def test_a_store_mlflow_cannot_open_is_refused_with_what_to_do(tiny_data, tmp_pa
     finally:
         mlflow.set_tracking_uri(mlflow_store)   # use_experiment set MLflow's global store to the bogus one
     assert not any(path.suffix == ".ckpt" for path in tmp_path.rglob("*"))
+
+
+def test_an_experiment_deleted_in_the_store_is_refused_with_what_to_do(tiny_data, tmp_path):
+    """MLflow keeps a deleted experiment's name and refuses runs in it; the run stops before stage 1 saying so."""
+    deleted = mlflow.create_experiment("deleted")
+    mlflow.delete_experiment(deleted)
+    with pytest.raises(PipeError, match=rf"^the MLflow experiment 'deleted' was deleted in the store .*\. Restore "
+                                        rf"it \(mlflow experiments restore --experiment-id {deleted}\)"):
+        run_domain(smoke_config(tiny_data, tmp_path, "mlflow.experiment=deleted"))
+    assert not any(path.suffix == ".ckpt" for path in tmp_path.rglob("*"))
+    MlflowClient().restore_experiment(deleted)
+    assert use_experiment(smoke_config(tiny_data, tmp_path, "mlflow.experiment=deleted")) == deleted
 
 
 def test_the_train_and_evaluate_phases_log_into_one_run(tiny_data, tmp_path):

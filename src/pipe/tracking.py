@@ -39,19 +39,25 @@ log = logging.getLogger(__name__)
 
 
 def use_experiment(cfg: DictConfig) -> str:
-    """Point MLflow at the configured store and experiment (created on first use); its id."""
+    """Point MLflow at the configured store and experiment (created on first use); its id. A store MLflow
+    cannot open or write, and an experiment deleted there (in MLflow's UI, say), are refused before any work."""
     uri = tracking_uri(cfg.mlflow.tracking_uri, Path(cfg.paths.root))
+    name = cfg.mlflow.experiment
     mlflow.set_tracking_uri(uri)
     try:
-        experiment = mlflow.get_experiment_by_name(cfg.mlflow.experiment)
+        experiment = mlflow.get_experiment_by_name(name)
+        if experiment is None:
+            return mlflow.create_experiment(name, artifact_location=artifact_location(uri))
     except MlflowException as exc:
         first = str(exc).strip().splitlines()[0].split(". ")[0] if str(exc).strip() else type(exc).__name__
         raise PipeError(f"the MLflow store {uri} could not be opened ({first}); point mlflow.tracking_uri or "
                         "MLFLOW_TRACKING_URI at a store MLflow supports (e.g. sqlite:///mlflow.db or "
                         "http://<host>:5000), or turn tracking off with mlflow.enabled=false") from None
-    if experiment is not None:
-        return experiment.experiment_id
-    return mlflow.create_experiment(cfg.mlflow.experiment, artifact_location=artifact_location(uri))
+    if experiment.lifecycle_stage == "deleted":
+        raise PipeError(f"the MLflow experiment {name!r} was deleted in the store {uri}. Restore it (mlflow "
+                        f"experiments restore --experiment-id {experiment.experiment_id}), track into another "
+                        "with mlflow.experiment=<name>, or delete it for good (mlflow gc)")
+    return experiment.experiment_id
 
 
 def flatten(tree: Any, prefix: str = "", leaf: Callable[[Any], str] = str) -> dict[str, str]:
