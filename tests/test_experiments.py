@@ -46,9 +46,11 @@ def run_here(script: str, *args: str) -> subprocess.CompletedProcess:
             try:
                 runpy.run_path(str(EXPERIMENTS / script), run_name="__main__")
             except SystemExit as stop:
-                status = stop.code if isinstance(stop.code, int) else 0 if stop.code is None else 1
-                if not isinstance(stop.code, int | None):
+                if isinstance(stop.code, int):
+                    status = stop.code
+                elif stop.code is not None:        # SystemExit("message"), as Python prints it
                     print(stop.code, file=sys.stderr)
+                    status = 1
     finally:
         sys.argv, sys.path[:] = saved_argv, saved_path
         METHODS._classes.clear()
@@ -70,13 +72,18 @@ def unsliced_run(tiny_data, tmp_path_factory):
                                    "code.slices=false"))
 
 
+def printed_here(script: str, *args: str) -> str:
+    """What `script` prints where it does no work but read rows (run_here), checking that it succeeded."""
+    done = run_here(script, *args)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
+
+
 def printed_table(script: str, rows: list[dict], tmp_path, *args: str) -> str:
     """What `script` prints for `rows` written to a JSON lines file (its --table, or summarise.py's output)."""
     rows_file = tmp_path / "rows.jsonl"
     rows_file.write_text("".join(json.dumps(row) + "\n" for row in rows))
-    done = run_here(script, str(rows_file), *args)
-    assert done.returncode == 0, done.stderr[-3000:]
-    return done.stdout
+    return printed_here(script, str(rows_file), *args)
 
 
 @pytest.mark.slow
@@ -453,7 +460,7 @@ def test_gpr_targets_neutral_start_is_the_runs_gpr_and_a_perturbed_start_moves_t
     assert (best_first["draws"], best_second["draws"]) == ([1], [2])
     assert best_first["gpr"] == pytest.approx(moved[0]["gpr"], abs=1e-6)
     assert best_second["gpr"] == pytest.approx(moved[1]["gpr"], abs=1e-6)
-    table = run_here("gpr_targets.py", str(moved_file), "--table").stdout
+    table = printed_here("gpr_targets.py", str(moved_file), "--table")
     assert f"| {neutral['gpr']:.2f} ± 0.00 |" in table
 
 
