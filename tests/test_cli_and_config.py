@@ -83,6 +83,17 @@ def test_a_test_part_may_not_leak_into_training():
         domain_from_config({"name": "x", "train": ["dsub9", "dsub26"], "val": [], "test": ["dsub26"]})
 
 
+def test_a_domain_needs_test_parts_and_names_each_part_once_per_split():
+    """An empty test split trained both stages and then failed in the evaluation with an IndexError; a part
+    named twice in train was trained on twice as often, silently."""
+    with pytest.raises(PipeError, match=r"domain 'x' has no test parts: a run scores PIPE"):
+        domain_from_config({"name": "x", "train": ["dsub9"], "val": [], "test": []})
+    with pytest.raises(PipeError, match=r"domain 'x': parts \['dsub9'\] are named more than once in 'train'"):
+        domain_from_config({"name": "x", "train": ["dsub9", "dsub15", "dsub9"], "val": [], "test": ["dsub26"]})
+    with pytest.raises(PipeError, match=r"parts \['vga'\] are named more than once in 'val'"):
+        domain_from_config({"name": "x", "train": ["dsub9"], "val": ["vga", "vga"], "test": ["dsub26"]})
+
+
 def test_cli_generate_then_check(tmp_path, capsys):
     out = tmp_path / "ds"
     assert main(["data", "generate", str(out), "--seed", "2", "--parts", "usbmicro,dowel8"]) == 0
