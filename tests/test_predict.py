@@ -157,6 +157,9 @@ def test_mesh_files_reads_a_folder_a_list_or_a_file(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(PipeError, match="empty: folder holds no mesh files"):
         mesh_files(str(tmp_path / "empty"))
+    # a missing file is named before the model is read (it was after, once the run's artifacts had come down)
+    with pytest.raises(PipeError, match="missing.stl: mesh file does not exist"):
+        mesh_files([str(tmp_path / "b.stl"), str(tmp_path / "missing.stl")])
 
 
 @pytest.mark.slow

@@ -141,7 +141,8 @@ def load_trajectory(path: Path, columns: DictConfig, rate: float) -> tuple[np.nd
 
 
 def mesh_files(mesh: str | Path | Sequence[str]) -> list[Path]:
-    """The meshes `mesh=` names: one file, a folder (its mesh files, sorted), or a list of files."""
+    """The meshes `mesh=` names: one file, a folder (its mesh files, sorted), or a list of files; a file that
+    does not exist is refused here, before the model is read."""
     paths = [Path(m) for m in mesh] if isinstance(mesh, Sequence) and not isinstance(mesh, str) else [Path(mesh)]
     if len(paths) == 1 and paths[0].is_dir():
         found = sorted(p for p in paths[0].iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
@@ -150,6 +151,9 @@ def mesh_files(mesh: str | Path | Sequence[str]) -> list[Path]:
         return found
     if not paths:
         raise PipeError("mesh= names no mesh; give a file, a folder or a list [a.stl,b.stl]")
+    for path in paths:
+        if not path.is_file():
+            raise PipeError("mesh file does not exist", path)
     return paths
 
 
