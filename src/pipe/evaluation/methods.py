@@ -22,11 +22,13 @@ from __future__ import annotations
 import copy
 import itertools
 import logging
+import warnings
 from abc import ABC, abstractmethod
 from dataclasses import replace
 
 import numpy as np
 import torch
+from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 from torch import nn
@@ -339,7 +341,7 @@ class GPR(CodeBaseline):
         kernels = self.kernels(x.shape[1])
         if not ctx.val and len(ctx.train) < 3:    # nothing to choose by: the marginal-likelihood optimum alone
             kernels = kernels[:1]
-        fitted = [self.regressor(kernel, ctx.seed).fit(inputs, outputs) for kernel in kernels]
+        fitted = [self.regression(kernel, ctx.seed, inputs, outputs) for kernel in kernels]
         if ctx.val:                 # the kernel of the lowest validation error
             self.gp = fitted[self.validation_choice(ctx, fitted)]
         else:                       # or of the lowest error on each training part left out in turn
@@ -357,8 +359,13 @@ class GPR(CodeBaseline):
         return int(np.argmin(scores))
 
     @staticmethod
-    def regressor(kernel, seed: int) -> GaussianProcessRegressor:
-        return GaussianProcessRegressor(kernel, normalize_y=True, random_state=seed)
+    def regression(kernel, seed: int, inputs: np.ndarray, outputs: np.ndarray) -> GaussianProcessRegressor:
+        """The kernel's regression fitted to the inputs. sklearn's ConvergenceWarning that a hyperparameter
+        ended at its bound is silenced: each candidate kernel is compared with the others on held-out parts,
+        so an optimum at a bound is a candidate like any other, and a run printed a dozen of these warnings."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            return GaussianProcessRegressor(kernel, normalize_y=True, random_state=seed).fit(inputs, outputs)
 
     def leave_one_out_nmse(self, ctx: EvalContext, kernel, inputs: np.ndarray, outputs: np.ndarray) -> float:
         """The mean NMSE of the force over the training parts' trials, each part predicted by the kernel's
@@ -371,7 +378,7 @@ class GPR(CodeBaseline):
         errors = []
         for i, part in enumerate(ctx.train):
             others = np.arange(len(ctx.train)) != i
-            self.gp = self.regressor(kernel, ctx.seed).fit(inputs[others], outputs[others])
+            self.gp = self.regression(kernel, ctx.seed, inputs[others], outputs[others])
             errors.append(validation_errors(self, replace(ctx, val=[part])))
         return float(np.mean(np.concatenate(errors)))
 
