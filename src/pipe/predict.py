@@ -24,6 +24,7 @@ from mlflow.models import Model  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
 from pipe.data.dataset import Trial, read_numeric_csv  # noqa: E402
+from pipe.data.mesh import check_mesh_path  # noqa: E402
 from pipe.data.preprocess import PointCloud, cloud_from_mesh, resample  # noqa: E402
 from pipe.data.spec import MESH_SUFFIXES  # noqa: E402
 from pipe.errors import PipeError  # noqa: E402
@@ -141,8 +142,8 @@ def load_trajectory(path: Path, columns: DictConfig, rate: float) -> tuple[np.nd
 
 
 def mesh_files(mesh: str | Path | Sequence[str]) -> list[Path]:
-    """The meshes `mesh=` names: one file, a folder (its mesh files, sorted), or a list of files; a file that
-    does not exist is refused here, before the model is read."""
+    """The meshes `mesh=` names: one file, a folder (its mesh files, sorted), or a list of files; a named file
+    that is missing or of a format not read is refused here, before the model is read."""
     paths = [Path(m) for m in mesh] if isinstance(mesh, Sequence) and not isinstance(mesh, str) else [Path(mesh)]
     if len(paths) == 1 and paths[0].is_dir():
         found = sorted(p for p in paths[0].iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
@@ -152,8 +153,7 @@ def mesh_files(mesh: str | Path | Sequence[str]) -> list[Path]:
     if not paths:
         raise PipeError("mesh= names no mesh; give a file, a folder or a list [a.stl,b.stl]")
     for path in paths:
-        if not path.is_file():
-            raise PipeError("mesh file does not exist", path)
+        check_mesh_path(path)
     return paths
 
 

@@ -85,6 +85,15 @@ def iges_units(data: bytes, path: Path | None = None) -> str:
     return unit
 
 
+def check_mesh_path(path: Path) -> None:
+    """Refuse, naming the file, a path that cannot be a mesh whatever it holds: missing, or of a format not
+    read (MESH_SUFFIXES). Checked before anything is read, so that a batch stops on it at once."""
+    if not path.is_file():
+        raise DatasetError("mesh file does not exist", path)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise DatasetError(f"unsupported mesh format {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}", path)
+
+
 def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     """Load a mesh file as one triangle mesh in mm.
 
@@ -94,10 +103,7 @@ def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     carry their own; the unit used is kept in `mesh.metadata["file_units"]`.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError("mesh file does not exist", path)
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise DatasetError(f"unsupported mesh format {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}", path)
+    check_mesh_path(path)
     if path.stat().st_size == 0:
         raise DatasetError("mesh file is empty", path)
     try:
