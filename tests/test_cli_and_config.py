@@ -83,11 +83,12 @@ def test_a_test_part_may_not_leak_into_training():
         domain_from_config({"name": "x", "train": ["dsub9", "dsub26"], "val": [], "test": ["dsub26"]})
 
 
-def test_a_domain_needs_test_parts_and_names_each_part_once_per_split():
-    """An empty test split trained both stages and then failed in the evaluation with an IndexError; a part
-    named twice in train was trained on twice as often, silently."""
-    with pytest.raises(PipeError, match=r"domain 'x' has no test parts: a run scores PIPE"):
-        domain_from_config({"name": "x", "train": ["dsub9"], "val": [], "test": []})
+def test_a_domain_needs_training_parts_and_names_each_part_once_per_split():
+    """A part named twice in train was trained on twice as often, silently. No test parts is a run that
+    publishes its model unscored (tests/test_tracking.py)."""
+    with pytest.raises(PipeError, match=r"domain 'x' has no training parts"):
+        domain_from_config({"name": "x", "train": [], "val": [], "test": ["dsub9"]})
+    assert domain_from_config({"name": "x", "train": ["dsub9"], "val": [], "test": []}).test == ()
     with pytest.raises(PipeError, match=r"domain 'x': parts \['dsub9'\] are named more than once in 'train'"):
         domain_from_config({"name": "x", "train": ["dsub9", "dsub15", "dsub9"], "val": [], "test": ["dsub26"]})
     with pytest.raises(PipeError, match=r"parts \['vga'\] are named more than once in 'val'"):

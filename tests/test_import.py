@@ -383,7 +383,8 @@ def test_hdf5_round_trip_in_the_tool_frame(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_the_readme_recordings_example_runs(tmp_path: Path) -> None:
     """'Bringing your own recordings' as the README states it: import RTDE logs, check, train (at smoke
-    settings, one seed) on recordings of four pegs whose stiffness grows with their diameter."""
+    settings, one seed) on recordings of four pegs whose stiffness grows with their diameter; then the model
+    to deploy, trained on every part, and predict.py with it."""
     block = next(b for b in (ROOT / "README.md").read_text().split("```") if b.startswith("bash\n# raw/<part>"))
     for diameter in (4, 6, 8, 10):
         part = tmp_path / "raw" / f"peg{diameter}"
@@ -406,6 +407,20 @@ def test_the_readme_recordings_example_runs(tmp_path: Path) -> None:
         assert result.returncode == 0, (line, result.stderr[-3000:])
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert set(metrics["per_part"]) == {"peg10"}
+
+    # the model to deploy, trained on every part, then predict.py with it
+    deploy = next(b for b in (ROOT / "README.md").read_text().split("```")
+                  if b.startswith("bash\npython train.py") and "'domain.test=[]'" in b)
+    args = [a.replace("data/mylab", str(tmp_path / "mylab")) for a in shlex.split(deploy.removeprefix("bash\n"))]
+    result = subprocess.run([sys.executable, *args[1:], "experiment=smoke", f"hydra.run.dir={tmp_path / 'all'}"],
+                            cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "trained on 3 training and 1 validation parts; no test parts, so nothing was scored" in result.stdout
+    run_id = (tmp_path / "all" / "mlflow_run_id").read_text().strip()
+    predicted = subprocess.run([sys.executable, str(ROOT / "predict.py"), f"mesh={tmp_path / 'cad' / 'peg8.stl'}",
+                                f"run={run_id}", f"hydra.run.dir={tmp_path / 'predicted'}"], cwd=ROOT,
+                               capture_output=True, text=True, timeout=600)
+    assert predicted.returncode == 0 and (tmp_path / "predicted" / "force.csv").is_file(), predicted.stderr[-3000:]
 
 
 def test_mesh_axes_go_to_dataset_yaml(tmp_path: Path) -> None:

@@ -61,6 +61,7 @@ def test_predict_follows_a_given_trajectory(trained_run, real_meshes, tmp_path):
     result = run_predict(f"mesh={mesh}", "run=models:/pipe-tiny/latest", f"trajectory={trajectory}",
                          f"hydra.run.dir={tmp_path / 'out'}")
     assert result.returncode == 0, result.stderr[-3000:]
+    assert "Downloading artifacts" not in result.stderr + result.stdout    # MLflow's bars, before its own output
     force = np.genfromtxt(tmp_path / "out" / "force.csv", delimiter=",", names=True)
     assert force["p_z"].max() == pytest.approx(3.0) and force["t"][-1] == pytest.approx(1.98, abs=0.03)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from dataclasses import replace
 
 import mlflow
 import mlflow.pytorch
@@ -17,8 +18,9 @@ from mlflow.tracking import MlflowClient
 from pipe import pipeline as run_module
 from pipe.data.folders import dataset_version
 from pipe.errors import PipeError
-from pipe.pipeline import run_domain
-from pipe.predict import load_pytorch_flavor
+from pipe.model.card import ModelCard
+from pipe.pipeline import PublishedRun, run_domain, run_seeds
+from pipe.predict import load_model, load_pytorch_flavor
 from pipe.tracking import flatten, use_experiment
 
 
@@ -123,6 +125,41 @@ def test_an_experiment_deleted_in_the_store_is_refused_with_what_to_do(tiny_data
     assert not any(path.suffix == ".ckpt" for path in tmp_path.rglob("*"))
     MlflowClient().restore_experiment(deleted)
     assert use_experiment(smoke_config(tiny_data, tmp_path, "mlflow.experiment=deleted")) == deleted
+
+
+def same_card(card: ModelCard, other: ModelCard) -> bool:
+    """Cards equal but for the last digits of the training parts' codes and of the band's offset (the parts
+    encoded and simulated in batches of other sizes: three parts, or four with a test part)."""
+    np.testing.assert_allclose(card.reference_codes, other.reference_codes, rtol=1e-5, atol=1e-7)
+    assert card.band.offset_n == pytest.approx(other.band.offset_n, rel=1e-5)
+    close = {"reference_codes": (), "band": replace(card.band, offset_n=0.0)}
+    return replace(card, **close) == replace(other, **close)
+
+
+def test_a_domain_without_test_parts_publishes_the_model_an_evaluation_would(trained_run, tiny_data, tmp_path):
+    """To deploy, a model is trained on every part there is: with no test parts a run scores nothing and
+    publishes what the evaluated run of the same training publishes (its weights, and its model card with the
+    band calibrated on the validation parts) for predict.py. seeds=, which compares methods on test parts,
+    is refused before any training."""
+    published = run_domain(smoke_config(tiny_data, tmp_path / "p", "domain.test=[]", "mlflow.registered_model=null"))
+    assert isinstance(published, PublishedRun) and published.counts == {"train": 2, "val": 1, "test": 0}
+    assert same_card(published.card, trained_run.card) and published.card.band.offset_n > 0
+    assert not (tmp_path / "p" / "metrics.json").exists() and not (tmp_path / "p" / "report").exists()
+    run_id = published.mlflow_run_id
+    run = MlflowClient().get_run(run_id)
+    assert run.info.status == "FINISHED" and "time/vae_s" in run.data.metrics
+    assert not [key for key in run.data.metrics if key.startswith("test/")]
+    assert {"config.yaml", "model_card.json"} <= {a.path for a in MlflowClient().list_artifacts(run_id)}
+    model, card = load_model(run_id, None, ROOT)
+    assert same_card(card, trained_run.card)
+    depth, z = torch.linspace(0, 8, 300)[None], trained_run.latents[:1]
+    with torch.no_grad():
+        np.testing.assert_allclose(model(z, depth, trained_run.dt).numpy(),
+                                   trained_run.model.eval()(z, depth, trained_run.dt).numpy(), rtol=1e-5)
+    with pytest.raises(PipeError, match=r"seeds= compares PIPE and the baselines over seeds on the test parts, and "
+                                        r"domain tiny has none"):
+        run_seeds(smoke_config(tiny_data, tmp_path / "s", "domain.test=[]", "seeds=[0,1]"))
+    assert not (tmp_path / "s").exists()
 
 
 def test_the_train_and_evaluate_phases_log_into_one_run(tiny_data, tmp_path):

@@ -12,11 +12,15 @@ import os
 import signal
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import hydra
 from omegaconf import DictConfig
 
 from hydra_plugins.pipe_searchpath import PIPE_CONFIG, register
+
+if TYPE_CHECKING:
+    from pipe.pipeline import PublishedRun
 
 register()   # installed plugins' configs join the search path, in editable installs too
 
@@ -28,7 +32,7 @@ def _train(cfg: DictConfig) -> float | None:
 
     from pipe.cli import console, fail, say
     from pipe.errors import PipeError, debugging
-    from pipe.pipeline import TrainedRun, results_rows, run_domain, run_seeds, spread_rows
+    from pipe.pipeline import PublishedRun, TrainedRun, results_rows, run_domain, run_seeds, spread_rows
     from pipe.tracking import stop_on_signals, stopping_signal
 
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # device banners and tips, twice
@@ -51,6 +55,12 @@ def _train(cfg: DictConfig) -> float | None:
         console.print(f"{wall_times(result.seconds, cfg.seeds is not None)}; trained in {result.run_dir}; evaluate "
                       f"with the same options and phase=evaluate resume={result.run_dir}", markup=False)
         return result.objective
+    if isinstance(result, PublishedRun):
+        if result.force_weight:
+            console.print(f"stage 1's force weight, chosen on the validation parts: "
+                          f"{force_choices({None: result.force_weight})}", markup=False)
+        console.print(published(result), markup=False)
+        return result.objective
     title = (f"{cfg.domain.name}: {cfg.encoder._target_.rsplit('.', 1)[-1]} + "
              f"{cfg.model._target_.rsplit('.', 1)[-1]}, held-out test parts")
     if cfg.seeds is not None:
@@ -72,6 +82,17 @@ def _train(cfg: DictConfig) -> float | None:
         console.print(f"MLflow run {result.mlflow_run_id} (`mlflow ui` from the project root); predict with: "
                       f"python predict.py mesh=<part.stl> run={model}")
     return result.objective
+
+
+def published(run: PublishedRun) -> str:
+    """What a run without test parts did, and how to use its model."""
+    counts = f"{run.counts['train']} training and {run.counts['val']} validation parts"
+    done = f"{run.domain_name}: trained on {counts}; no test parts, so nothing was scored"
+    times = f"{wall_times(run.seconds, False)}; weights in {run.weights_dir}"
+    if run.mlflow_run_id is None:
+        return f"{done}. {times}; with mlflow.enabled=false no model was published for predict.py"
+    return (f"{done}: the model is published for predict.py. {times}; MLflow run {run.mlflow_run_id}; predict "
+            f"with: python predict.py mesh=<part.stl> run={run.mlflow_run_id}")
 
 
 def wall_times(seconds: dict[str, float], seeds: bool) -> str:
@@ -123,6 +144,7 @@ def _predict(cfg: DictConfig) -> None:
     from pipe.predict import predict, write_predictions
     from pipe.settings import PREDICT_SETTINGS, check_settings
 
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")   # a model of a few MB; set true to see it
     try:
         check_settings(cfg, PREDICT_SETTINGS, "python predict.py mesh=part.stl run=<the run id train.py printed>")
         predictions = predict(cfg)

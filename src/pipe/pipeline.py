@@ -35,7 +35,7 @@ from pipe.data.slices import SLICE_SIZE
 from pipe.data.spec import SPEC_FILE
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
-from pipe.evaluation.evaluate import MethodResult, evaluate_methods, reconstruction_metrics
+from pipe.evaluation.evaluate import MethodResult, calibrated_band_offset, evaluate_methods, reconstruction_metrics
 from pipe.evaluation.report import spread_markdown, write_report
 from pipe.evaluation.spread import Spread, check_seeds, summarise, verdict
 from pipe.files import write_text_atomically
@@ -55,6 +55,7 @@ from pipe.tracking import (
     flatten,
     git_commit,
     log_outputs,
+    log_published,
     log_run_metrics,
     parent_run,
     tracked_run,
@@ -122,6 +123,23 @@ class TrainedRun:
     domain_name: str
     seconds: dict[str, float]
     objective: float | None
+    mlflow_run_id: str | None = None
+
+
+@dataclass
+class PublishedRun:
+    """A run of a domain without test parts: trained, nothing scored, the model and its card published for
+    predict.py (the band calibrated on the validation parts)."""
+
+    run_dir: Path
+    weights_dir: Path                      # the folder of the checkpoints it publishes
+    domain_name: str
+    counts: dict[str, int]                 # parts per split
+    model: PIPEModel
+    card: ModelCard
+    seconds: dict[str, float]
+    objective: float | None
+    force_weight: dict[str, Any] | None = None
     mlflow_run_id: str | None = None
 
 
@@ -242,21 +260,21 @@ def build_model(cfg: DictConfig, data: PreparedDomain,
 
 
 def model_card(cfg: DictConfig, data: PreparedDomain, dynamics: DynamicModel, band_offset: float,
-               codes: dict[str, torch.Tensor]) -> ModelCard:
+               trained: Trained) -> ModelCard:
     """What predict.py needs besides the weights: preprocessing settings, the training parts' sizes and codes
-    (`codes`: the head's input by part name, for `pipe.model.novelty`) and the prediction band's settings with
-    its offset calibrated on the validation parts."""
+    (the head's input, from `trained`, for `pipe.model.novelty`) and the prediction band's settings with its
+    offset calibrated on the validation parts."""
     train = data.splits["train"]
     extents = [float(np.ptp(p.cloud.points, axis=0).max()) for p in train]
     force_scale, depth_scale = data_scales(train)
     band = BandSettings.from_config(cfg.evaluation.get("band"))
+    codes = [trained.latents[trained.index[name]].tolist() for name in data.domain.train]
     return ModelCard(domain=data.domain.name, points=int(cfg.data.points), cloud_seed=int(cfg.data.cloud_seed),
                      rate_hz=float(cfg.data.rate_hz), parameter_names=tuple(dynamics.parameter_names),
                      train_parts=data.domain.train, train_size_mm=(min(extents), max(extents)),
                      depth_scale_mm=depth_scale, force_scale_n=force_scale,
                      band=BandCard(band.level, band.samples, band.seed, band_offset),
-                     reference_codes=tuple(tuple(float(f"{x:.7g}") for x in codes[name].tolist())
-                                           for name in data.domain.train))
+                     reference_codes=tuple(tuple(float(f"{x:.7g}") for x in code) for code in codes))
 
 
 def check_phase(cfg: DictConfig) -> str:
@@ -328,9 +346,9 @@ def check_same_settings(cfg: DictConfig, folder: Path) -> None:
                         f"(its config.yaml)", folder)
 
 
-def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
+def run_domain(cfg: DictConfig) -> RunResult | TrainedRun | PublishedRun:
     """Train and evaluate one domain as configured (or one `phase` of it); tracked as one MLflow run unless
-    `mlflow.enabled` is off."""
+    `mlflow.enabled` is off. A domain without test parts is trained and published, not evaluated."""
     phase = check_phase(cfg)
     loss = head_loss(cfg)               # an unknown stage-2 loss fails now, not after stage 1
     weights, _ = force_setting(cfg)     # so does a wrong stage-1 force term
@@ -388,9 +406,16 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun:
                 mlflow.log_metrics({f"time/{stage}_s": seconds for stage, seconds in trained.seconds.items()})
             return TrainedRun(run_dir, data.domain.name, trained.seconds, trained.objective,
                               active.info.run_id if tracking else None)
-        run = evaluate_trained(cfg, data, model, trained, run_dir)
+        registered = registered_model_name(cfg.mlflow.registered_model, data.domain.name)
+        if not data.splits["test"]:
+            run = publish_trained(cfg, data, model, trained, run_dir)
+            if tracking:
+                log_published(run, registered)
+        else:
+            run = evaluate_trained(cfg, data, model, trained, run_dir)
+            if tracking:
+                log_outputs(run, registered)
         if tracking:
-            log_outputs(run, registered_model_name(cfg.mlflow.registered_model, data.domain.name))
             run.mlflow_run_id = active.info.run_id
     return run
 
@@ -420,6 +445,10 @@ def run_seeds(cfg: DictConfig) -> SeedsResult | TrainedRun:
     phase=train the seeds are trained only (the parent run's id kept in the folder, for phase=evaluate)."""
     seeds = check_seeds(cfg.seeds)
     phase = check_phase(cfg)
+    if cfg.domain.get("test") is not None and len(cfg.domain.test) == 0:
+        raise PipeError(f"seeds= compares PIPE and the baselines over seeds on the test parts, and domain "
+                        f"{cfg.domain.name} has none; train the model to publish without seeds= (seed=<k> picks its "
+                        f"seed), or name test parts")
     trained = Path(cfg.resume or cfg.paths.output_dir)
     if phase == "evaluate":   # the folder of an evaluation's seeds: that of the seeds' training, and its parent run
         trained = evaluated_folder(trained / f"seed_{seeds[0]}").parent
@@ -589,10 +618,9 @@ def evaluate_trained(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, tr
     reconstruction = reconstruction_metrics(model.encoder, test)
     seconds = {**trained.seconds, "evaluation": time.perf_counter() - start}
     band = next(iter(results["pipe"].bands.values()))
-    train_codes = {p.name: trained.latents[trained.index[p.name]] for p in train}
     run = RunResult(run_dir, data.domain.name, {k: len(v) for k, v in data.splits.items()}, model, trained.latents,
                     trained.index, test, dt, results, reconstruction,
-                    model_card(cfg, data, model.dynamics, band.offset, train_codes), seconds, logvars=trained.logvars,
+                    model_card(cfg, data, model.dynamics, band.offset, trained), seconds, logvars=trained.logvars,
                     objective=trained.objective, trained_dir=None if trained.folder == run_dir else trained.folder,
                     force_weight=trained.force_weight)
     write_text_atomically(run_dir / "metrics.json", json.dumps(
@@ -602,6 +630,21 @@ def evaluate_trained(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, tr
          "machine": machine_info()}, indent=2) + "\n")
     write_report(run, run_dir / "report")
     return run
+
+
+def publish_trained(cfg: DictConfig, data: PreparedDomain, model: PIPEModel, trained: Trained,
+                    run_dir: Path) -> PublishedRun:
+    """A trained model of a domain without test parts (one trained on every part there is, to deploy): nothing
+    to score, so only its model card, with the band's offset calibrated on the validation parts."""
+    train = data.splits["train"]
+    if cfg.evaluation.baselines:
+        log.info("domain %s has no test parts: the baselines %s are not evaluated", data.domain.name,
+                 list(cfg.evaluation.baselines))
+    ctx = EvalContext(model, trained.latents, trained.index, train, 1.0 / cfg.data.rate_hz, cfg.seed,
+                      dict(cfg.evaluation), val=data.splits["val"], logvars=trained.logvars)
+    card = model_card(cfg, data, model.dynamics, calibrated_band_offset(ctx), trained)
+    return PublishedRun(run_dir, trained.folder, data.domain.name, {k: len(v) for k, v in data.splits.items()},
+                        model, card, trained.seconds, trained.objective, trained.force_weight)
 
 
 def results_rows(result: RunResult) -> list[list[str]]:

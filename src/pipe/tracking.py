@@ -302,12 +302,18 @@ def log_outputs(run, registered_model: str | None) -> None:
         mlflow.log_metrics({f"test/reconstruction/{part}/{k}": v for k, v in metrics.items()})
     mlflow.log_metrics({f"test/reconstruction/{k}": sum(m[k] for m in run.reconstruction.values())
                         / len(run.reconstruction) for k in next(iter(run.reconstruction.values()))})
+    log_published(run, registered_model)
+    mlflow.log_artifact(str(run.run_dir / "metrics.json"))
+    mlflow.log_artifacts(str(run.run_dir / "report"), "report")
+
+
+def log_published(run, registered_model: str | None) -> None:
+    """What every finished run logs, scored or not: its stage times, stage 2's best loss, its config and the
+    trained model with its model card (as the model's metadata, which predict.py reads back)."""
     mlflow.log_metrics({f"time/{stage}_s": seconds for stage, seconds in run.seconds.items()})
     if run.objective is not None:
         mlflow.log_metric("objective", run.objective)   # what a hyperparameter search minimises
     mlflow.log_artifact(str(run.run_dir / "config.yaml"))
-    mlflow.log_artifact(str(run.run_dir / "metrics.json"))
-    mlflow.log_artifacts(str(run.run_dir / "report"), "report")
     mlflow.log_dict(run.card.to_dict(), "model_card.json")
     # The model pickles its plugins by reference (pipe.plugins.*, or an installed plugin package's module):
     # loading it needs pipe, and those packages, installed.

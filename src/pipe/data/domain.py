@@ -47,8 +47,9 @@ def numbered_split(prefix: str | None, split: str, test_count: int, val_count: i
 
 
 def domain_from_config(cfg: Mapping[str, Any]) -> Domain:
-    """Build a domain from its config group: training and test parts are required, no part is named twice in
-    a split, and test parts must not be in train or val."""
+    """Build a domain from its config group: training parts are required, no part is named twice in a split,
+    and test parts must not be in train or val. Without test parts a run scores nothing and publishes the
+    model trained on all the others (`pipe.pipeline.publish_trained`)."""
     name = str(cfg.get("name", "?"))
     if "family" in cfg and cfg["family"] is None:
         raise PipeError(f"domain {name!r} splits the parts of a generated family, but the data config names no "
@@ -61,9 +62,6 @@ def domain_from_config(cfg: Mapping[str, Any]) -> Domain:
         splits[split] = tuple(parts)
     if not splits["train"]:
         raise PipeError(f"domain {name!r} has no training parts")
-    if not splits["test"]:
-        raise PipeError(f"domain {name!r} has no test parts: a run scores PIPE and the baselines on held-out parts; "
-                        "name at least one (domain.test=[<part>])")
     for split, parts in splits.items():
         if twice := sorted({part for part in parts if parts.count(part) > 1}):
             raise PipeError(f"domain {name!r}: parts {twice} are named more than once in '{split}'")

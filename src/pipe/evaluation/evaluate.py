@@ -96,6 +96,16 @@ def evaluate_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -
 
 
 @torch.no_grad()
+def calibrated_band_offset(ctx: EvalContext) -> float:
+    """PIPE's band offset [N], calibrated on the validation parts as `evaluate_methods` calibrates it: the
+    model card's, for a run without test parts."""
+    ctx.model.eval()
+    pipe = METHODS["pipe"]()
+    pipe.fit(ctx)
+    return pipe.offset
+
+
+@torch.no_grad()
 def reconstruction_metrics(encoder: PointCloudVAE, parts: list[PartData]) -> dict[str, dict[str, float]]:
     """Per part: the VAE's reconstruction from the mean latent code, as the paper's Chamfer loss [mm^2], the
     mean nearest-neighbour distance [mm], and that distance with both clouds normalised to the unit sphere
