@@ -16,6 +16,7 @@ from conftest import ROOT, TINY_DOMAIN, smoke_config
 from mlflow.tracking import MlflowClient
 
 from pipe import pipeline as run_module
+from pipe.app import published as published_note
 from pipe.data.folders import dataset_version
 from pipe.errors import PipeError
 from pipe.model.card import ModelCard
@@ -156,6 +157,9 @@ def test_a_domain_without_test_parts_publishes_the_model_an_evaluation_would(tra
     with torch.no_grad():
         np.testing.assert_allclose(model(z, depth, trained_run.dt).numpy(),
                                    trained_run.model.eval()(z, depth, trained_run.dt).numpy(), rtol=1e-5)
+    assert "published for predict.py. stage 1 " in published_note(published)
+    assert f"predict with: python predict.py mesh=<part.stl> run={run_id}" in published_note(published)
+    assert "with mlflow.enabled=false no model was published" in published_note(replace(published, mlflow_run_id=None))
     with pytest.raises(PipeError, match=r"seeds= compares PIPE and the baselines over seeds on the test parts, and "
                                         r"domain tiny has none"):
         run_seeds(smoke_config(tiny_data, tmp_path / "s", "domain.test=[]", "seeds=[0,1]"))
