@@ -160,6 +160,9 @@ def test_a_domain_without_test_parts_publishes_the_model_an_evaluation_would(tra
     assert "published for predict.py. stage 1 " in published_note(published)
     assert f"predict with: python predict.py mesh=<part.stl> run={run_id}" in published_note(published)
     assert "with mlflow.enabled=false no model was published" in published_note(replace(published, mlflow_run_id=None))
+    assert "band is not calibrated" not in published_note(published)
+    assert "nothing was scored and the prediction band is not calibrated" in published_note(
+        replace(published, counts={"train": 3, "val": 0, "test": 0}))
     with pytest.raises(PipeError, match=r"seeds= compares PIPE and the baselines over seeds on the test parts, and "
                                         r"domain tiny has none"):
         run_seeds(smoke_config(tiny_data, tmp_path / "s", "domain.test=[]", "seeds=[0,1]"))

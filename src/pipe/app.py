@@ -88,6 +88,8 @@ def published(run: PublishedRun) -> str:
     """What a run without test parts did, and how to use its model."""
     counts = f"{run.counts['train']} training and {run.counts['val']} validation parts"
     done = f"{run.domain_name}: trained on {counts}; no test parts, so nothing was scored"
+    if not run.counts["val"]:
+        done += " and the prediction band is not calibrated (it is calibrated on the validation parts)"
     times = f"{wall_times(run.seconds, False)}; weights in {run.weights_dir}"
     if run.mlflow_run_id is None:
         return f"{done}. {times}; with mlflow.enabled=false no model was published for predict.py"
