@@ -140,9 +140,11 @@ def same_card(card: ModelCard, other: ModelCard) -> bool:
 def test_a_domain_without_test_parts_publishes_the_model_an_evaluation_would(trained_run, tiny_data, tmp_path):
     """To deploy, a model is trained on every part there is: with no test parts a run scores nothing and
     publishes what the evaluated run of the same training publishes (its weights, and its model card with the
-    band calibrated on the validation parts) for predict.py. seeds=, which compares methods on test parts,
-    is refused before any training."""
-    published = run_domain(smoke_config(tiny_data, tmp_path / "p", "domain.test=[]", "mlflow.registered_model=null"))
+    band calibrated on the validation parts) for predict.py; the run and the registered version say it was never
+    scored, where the evaluated one's say on what it was. seeds=, which compares methods on test parts, is
+    refused before any training."""
+    published = run_domain(smoke_config(tiny_data, tmp_path / "p", "domain.test=[]",
+                                        "mlflow.registered_model=deploy-tiny"))
     assert isinstance(published, PublishedRun) and published.counts == {"train": 2, "val": 1, "test": 0}
     assert same_card(published.card, trained_run.card) and published.card.band.offset_n > 0
     assert not (tmp_path / "p" / "metrics.json").exists() and not (tmp_path / "p" / "report").exists()
@@ -151,6 +153,16 @@ def test_a_domain_without_test_parts_publishes_the_model_an_evaluation_would(tra
     assert run.info.status == "FINISHED" and "time/vae_s" in run.data.metrics
     assert not [key for key in run.data.metrics if key.startswith("test/")]
     assert {"config.yaml", "model_card.json"} <= {a.path for a in MlflowClient().list_artifacts(run_id)}
+    (version,) = MlflowClient().search_model_versions(f"run_id='{run_id}'")
+    assert version.name == "deploy-tiny" and version.tags == {"scored": "false"} and run.data.tags["scored"] == "false"
+    assert version.description == ("tiny: trained on 2 training parts; no test parts, so never scored on held-out "
+                                   "parts (trained to deploy)")
+    (evaluated,) = MlflowClient().search_model_versions(f"run_id='{trained_run.mlflow_run_id}'")
+    assert evaluated.tags == {"scored": "true"}
+    assert MlflowClient().get_run(trained_run.mlflow_run_id).data.tags["scored"] == "true"
+    test_part = trained_run.test[0].name
+    assert evaluated.description == (f"tiny: trained on 2 training parts; scored on the test parts {test_part}: "
+                                     f"PIPE's FIT(F) {trained_run.pipe.domain['fit_F']:.2f} %")
     model, card = load_model(run_id, None, ROOT)
     assert same_card(card, trained_run.card)
     depth, z = torch.linspace(0, 8, 300)[None], trained_run.latents[:1]

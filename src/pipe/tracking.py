@@ -302,14 +302,19 @@ def log_outputs(run, registered_model: str | None) -> None:
         mlflow.log_metrics({f"test/reconstruction/{part}/{k}": v for k, v in metrics.items()})
     mlflow.log_metrics({f"test/reconstruction/{k}": sum(m[k] for m in run.reconstruction.values())
                         / len(run.reconstruction) for k in next(iter(run.reconstruction.values()))})
-    log_published(run, registered_model)
+    log_published(run, registered_model, scored=f"scored on the test parts {', '.join(p.name for p in run.test)}: "
+                                              f"PIPE's FIT(F) {run.pipe.domain['fit_F']:.2f} %")
     mlflow.log_artifact(str(run.run_dir / "metrics.json"))
     mlflow.log_artifacts(str(run.run_dir / "report"), "report")
 
 
-def log_published(run, registered_model: str | None) -> None:
+def log_published(run, registered_model: str | None, scored: str | None = None) -> None:
     """What every finished run logs, scored or not: its stage times, stage 2's best loss, its config and the
-    trained model with its model card (as the model's metadata, which predict.py reads back)."""
+    trained model with its model card (as the model's metadata, which predict.py reads back). `scored` says
+    on what the model was scored (None: a model trained without test parts, never scored); the run and the
+    registered version carry it (tag `scored`, and the version's description), so that a registry's versions
+    of one name, the evaluated ones and those trained on every part to deploy, tell themselves apart."""
+    mlflow.set_tag("scored", "true" if scored else "false")
     mlflow.log_metrics({f"time/{stage}_s": seconds for stage, seconds in run.seconds.items()})
     if run.objective is not None:
         mlflow.log_metric("objective", run.objective)   # what a hyperparameter search minimises
@@ -317,7 +322,16 @@ def log_published(run, registered_model: str | None) -> None:
     mlflow.log_dict(run.card.to_dict(), "model_card.json")
     # The model pickles its plugins by reference (pipe.plugins.*, or an installed plugin package's module):
     # loading it needs pipe, and those packages, installed.
-    mlflow.pytorch.log_model(run.model, name="model", metadata=run.card.to_dict(), serialization_format="pickle",
-                             pip_requirements=[f"torch=={torch.__version__.split('+')[0]}",
-                                               f"pipe-sysid=={__version__}"],
-                             registered_model_name=registered_model)
+    info = mlflow.pytorch.log_model(run.model, name="model", metadata=run.card.to_dict(),
+                                    serialization_format="pickle",
+                                    pip_requirements=[f"torch=={torch.__version__.split('+')[0]}",
+                                                      f"pipe-sysid=={__version__}"],
+                                    registered_model_name=registered_model)
+    if registered_model and info.registered_model_version is not None:
+        version = str(info.registered_model_version)
+        parts = len(run.card.train_parts)
+        client = MlflowClient()
+        client.set_model_version_tag(registered_model, version, "scored", "true" if scored else "false")
+        client.update_model_version(registered_model, version, description=(
+            f"{run.card.domain}: trained on {parts} training parts; "
+            + (scored or "no test parts, so never scored on held-out parts (trained to deploy)")))
