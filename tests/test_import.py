@@ -417,10 +417,17 @@ def test_the_readme_recordings_example_runs(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr[-3000:]
     assert "trained on 3 training and 1 validation parts; no test parts, so nothing was scored" in result.stdout
     run_id = (tmp_path / "all" / "mlflow_run_id").read_text().strip()
-    predicted = subprocess.run([sys.executable, str(ROOT / "predict.py"), f"mesh={tmp_path / 'cad' / 'peg8.stl'}",
-                                f"run={run_id}", f"hydra.run.dir={tmp_path / 'predicted'}"], cwd=ROOT,
+    meshes = f"mesh=[{tmp_path / 'cad' / 'peg8.stl'},{tmp_path / 'cad' / 'peg4.stl'}]"
+    predicted = subprocess.run([sys.executable, str(ROOT / "predict.py"), meshes, f"run={run_id}",
+                                f"hydra.run.dir={tmp_path / 'predicted'}"], cwd=ROOT,
                                capture_output=True, text=True, timeout=600)
-    assert predicted.returncode == 0 and (tmp_path / "predicted" / "force.csv").is_file(), predicted.stderr[-3000:]
+    assert predicted.returncode == 0 and (tmp_path / "predicted" / "predictions.csv").is_file(), \
+        predicted.stderr[-3000:]
+    # the model's note, in every prediction's notes, is printed once, not once per mesh
+    note = f"note: the model's run {run_id} had no test parts: the model was never scored on held-out parts"
+    assert predicted.stdout.count(note) == 1 and f"peg4.stl: {note}" not in predicted.stdout
+    for part in ("peg8", "peg4"):
+        assert json.loads((tmp_path / "predicted" / part / "theta.json").read_text())["notes"][0] == note
 
 
 def test_mesh_axes_go_to_dataset_yaml(tmp_path: Path) -> None:

@@ -21,7 +21,7 @@ from pipe.data.folders import dataset_version
 from pipe.errors import PipeError
 from pipe.model.card import ModelCard
 from pipe.pipeline import PublishedRun, run_domain, run_seeds
-from pipe.predict import load_model, load_pytorch_flavor
+from pipe.predict import load_model, load_pytorch_flavor, scoring_notes
 from pipe.tracking import flatten, use_experiment
 
 
@@ -163,6 +163,9 @@ def test_a_domain_without_test_parts_publishes_the_model_an_evaluation_would(tra
     test_part = trained_run.test[0].name
     assert evaluated.description == (f"tiny: trained on 2 training parts; scored on the test parts {test_part}: "
                                      f"PIPE's FIT(F) {trained_run.pipe.domain['fit_F']:.2f} %")
+    assert scoring_notes(f"runs:/{run_id}/model") == [
+        f"note: the model's run {run_id} had no test parts: the model was never scored on held-out parts"]
+    assert scoring_notes(f"runs:/{trained_run.mlflow_run_id}/model") == []
     model, card = load_model(run_id, None, ROOT)
     assert same_card(card, trained_run.card)
     depth, z = torch.linspace(0, 8, 300)[None], trained_run.latents[:1]

@@ -156,9 +156,13 @@ def _predict(cfg: DictConfig) -> None:
         sys.exit(fail(str(err)))
     out = Path(HydraConfig.get().runtime.output_dir)
     write_predictions(predictions, out, str(cfg.run))
+    several = len(predictions) > 1
+    shared = [n for n in predictions[0].notes if all(n in p.notes for p in predictions)] if several else []
+    for note in shared:                 # a note every mesh has (the model's, a unit) is said once
+        console.print(note, markup=False)
     for prediction in predictions:
-        prefix = f"{prediction.mesh.name}: " if len(predictions) > 1 else ""
-        for note in prediction.notes:
+        prefix = f"{prediction.mesh.name}: " if several else ""
+        for note in (n for n in prediction.notes if n not in shared):
             console.print(prefix + note, markup=False)
         peak = int(prediction.force.argmax())
         lower, upper = prediction.force_band[:, peak]

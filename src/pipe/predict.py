@@ -21,6 +21,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from mlflow.exceptions import MlflowException  # noqa: E402
 from mlflow.models import Model  # noqa: E402
+from mlflow.tracking import MlflowClient  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
 from pipe.data.dataset import Trial, read_numeric_csv  # noqa: E402
@@ -169,15 +170,27 @@ def predict(cfg: DictConfig) -> list[Prediction]:
     """Load the model `cfg.run` names, then `predict_with` it for every mesh `cfg.mesh` names."""
     meshes = mesh_files(cfg.mesh)
     model, card = load_model(cfg.run, cfg.mlflow.tracking_uri, Path(cfg.paths.root))
-    return predict_with(model, card, cfg, meshes)
+    return predict_with(model, card, cfg, meshes, scoring_notes(model_uri(str(cfg.run))))
+
+
+def scoring_notes(uri: str) -> list[str]:
+    """A note where the model's run says it was never scored: trained without test parts, to deploy (its
+    MLflow tag `scored`, `pipe.tracking.log_published`). None for a scored model, or one logged before runs
+    said so."""
+    run_id = mlflow.models.get_model_info(uri).run_id
+    if run_id and MlflowClient().get_run(run_id).data.tags.get("scored") == "false":
+        return [f"note: the model's run {run_id} had no test parts: the model was never scored on held-out parts"]
+    return []
 
 
 @torch.no_grad()
-def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig, meshes: list[Path]) -> list[Prediction]:
+def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig, meshes: list[Path],
+                 model_notes: Sequence[str] = ()) -> list[Prediction]:
     """A loaded model's predictions for the meshes: sample each mesh, encode them as one batch, Theta(p_z) and
     the force along one trajectory for all of them at once, then each part's two bands
     (`pipe.model.uncertainty`; the force band widened by the card's calibrated offset). Every mesh is read
-    before anything is predicted: a broken one stops the batch naming its file."""
+    before anything is predicted: a broken one stops the batch naming its file. `model_notes` (on the model
+    itself) lead every prediction's notes."""
     samples = [sample_mesh(path, cfg, card) for path in meshes]
     clouds = [cloud for cloud, _ in samples]
     z, logvar = model.latent_distribution(torch.from_numpy(np.stack([c.points for c in clouds])),
@@ -203,7 +216,7 @@ def predict_with(model: torch.nn.Module, card: ModelCard, cfg: DictConfig, meshe
         force_limits = np.stack([lower[0].numpy() - card.band.offset_n, upper[0].numpy() + card.band.offset_n])
         theta_limits = np.stack([t.numpy() for t in theta_band(model, z[i], logvar[i], depth_max, grid[0], settings)])
         predictions.append(Prediction(path, grid[0].numpy(), thetas[i], list(card.parameter_names), time, depth,
-                                      forces[i], local_models(profile, i), notes + more, card.band,
+                                      forces[i], local_models(profile, i), [*model_notes, *notes, *more], card.band,
                                       force_limits, theta_limits, found))
     return predictions
 
