@@ -44,7 +44,9 @@ def machine_line(machine: dict[str, str] | None) -> str:
     """A run's machine in one line (`pipe.machine.machine_info`), or that its results.json predates the record."""
     if not machine:
         return "not recorded"
-    return (f"{machine['cpu']}, {machine['cpus']} logical CPUs, {machine['system']}, Python {machine['python']}, "
+    kernels = f" (kernels: {machine['kernels']})" if "kernels" in machine else ""   # recorded since 2026-12-06
+    return (f"{machine['cpu']}, {machine['cpus']} logical CPUs{kernels}, {machine['system']}, "
+            f"Python {machine['python']}, "
             + ", ".join(f"{name} {machine[name]}" for name in ("torch", "numba", "numpy") if name in machine))
 
 
