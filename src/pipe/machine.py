@@ -26,7 +26,7 @@ def cpu_kernels() -> str:
     """The instruction sets the numeric kernels run on here: torch's dispatch level (AVX2, AVX512, ...;
     ATEN_CPU_CAPABILITY lowers it) and the CPU numba compiles its loops for (NUMBA_CPU_NAME, else the host's).
     One CPU model name can hide two of them: two "AMD EPYC" hosts, one with AVX-512, gave other
-    identifications from the same code (2026-12-06)."""
+    figures from the same code (2026-12-06)."""
     import numba
     import torch
     from llvmlite import binding
