@@ -52,5 +52,5 @@ def test_predict_refuses_a_model_logged_without_a_card(trained_run):
                                  pip_requirements=["torch"])
     with pytest.raises(PipeError, match=f"runs:/{run.info.run_id}/model has no pipe model card .* retrain"):
         load_model(run.info.run_id, None, ROOT)
-    model, card = load_model(trained_run.mlflow_run_id, None, ROOT)
+    model, card, _ = load_model(trained_run.mlflow_run_id, None, ROOT)
     assert card == trained_run.card and card.points == 128 and card.domain == "tiny"

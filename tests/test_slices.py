@@ -219,7 +219,7 @@ def test_a_run_with_slices_predicts_a_mesh_as_it_encoded_its_part(tiny_data, tmp
     result = run_domain(smoke_config(tiny_data, tmp_path / "run", "code.slices=true", "evaluation.baselines=[nearest]"))
     assert result.model.slices is not None
     assert {"nearest_reads_slices", "nearest_reads_sections"} <= set(result.results["nearest"].per_part["dsub26"])
-    model, card = load_model(result.mlflow_run_id, None, tmp_path)
+    model, card, _ = load_model(result.mlflow_run_id, None, tmp_path)
     mesh = next((tiny_data / "parts" / "dsub26").glob("mesh.*"))
     with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
         cfg = compose(config_name="predict", overrides=[f"mesh={mesh}", f"run={result.mlflow_run_id}", "units=mm"])

@@ -163,10 +163,10 @@ def test_a_domain_without_test_parts_publishes_the_model_an_evaluation_would(tra
     test_part = trained_run.test[0].name
     assert evaluated.description == (f"tiny: trained on 2 training parts; scored on the test parts {test_part}: "
                                      f"PIPE's FIT(F) {trained_run.pipe.domain['fit_F']:.2f} %")
-    assert scoring_notes(f"runs:/{run_id}/model") == [
+    model, card, logged_by = load_model(run_id, None, ROOT)
+    assert logged_by == run_id and scoring_notes(logged_by) == [
         f"note: the model's run {run_id} had no test parts: the model was never scored on held-out parts"]
-    assert scoring_notes(f"runs:/{trained_run.mlflow_run_id}/model") == []
-    model, card = load_model(run_id, None, ROOT)
+    assert scoring_notes(trained_run.mlflow_run_id) == []
     assert same_card(card, trained_run.card)
     depth, z = torch.linspace(0, 8, 300)[None], trained_run.latents[:1]
     with torch.no_grad():

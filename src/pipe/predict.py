@@ -74,24 +74,24 @@ def load_pytorch_flavor(uri: str) -> torch.nn.Module:
         return torch.load(local / data / "model.pth", map_location="cpu", weights_only=False)
 
 
-def load_model(run: str, uri_override: str | None, root: Path) -> tuple[torch.nn.Module, ModelCard]:
-    """The trained PIPEModel and its model card from the MLflow store."""
+def load_model(run: str, uri_override: str | None, root: Path) -> tuple[torch.nn.Module, ModelCard, str | None]:
+    """The trained PIPEModel, its model card and the id of the run that logged it, from the MLflow store."""
     store = tracking_uri(uri_override, root)
     mlflow.set_tracking_uri(store)
     uri = model_uri(str(run))
     try:
-        metadata = mlflow.models.get_model_info(uri).metadata
+        info = mlflow.models.get_model_info(uri)
     except (MlflowException, OSError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise PipeError(f"no trained model at {uri} in the MLflow store {store} ({first}); give the run id "
                         "that train.py printed, or a runs:/ or models:/ URI") from None
-    card = ModelCard.from_dict(metadata, uri)   # before unpickling: an incompatible model fails clearly
+    card = ModelCard.from_dict(info.metadata, uri)   # before unpickling: an incompatible model fails clearly
     try:
         model = load_pytorch_flavor(uri)
     except (MlflowException, OSError, ImportError, AttributeError, KeyError) as exc:
         raise PipeError(f"the model at {uri} could not be loaded ({type(exc).__name__}: {exc}); a model with "
                         "plugins from another package needs that package installed") from None
-    return model.eval(), card
+    return model.eval(), card, info.run_id
 
 
 def check_size(extent: float, card: ModelCard, units: str, assumed: str, mesh: Path) -> list[str]:
@@ -169,15 +169,14 @@ def sample_mesh(path: Path, cfg: DictConfig, card: ModelCard) -> tuple[PointClou
 def predict(cfg: DictConfig) -> list[Prediction]:
     """Load the model `cfg.run` names, then `predict_with` it for every mesh `cfg.mesh` names."""
     meshes = mesh_files(cfg.mesh)
-    model, card = load_model(cfg.run, cfg.mlflow.tracking_uri, Path(cfg.paths.root))
-    return predict_with(model, card, cfg, meshes, scoring_notes(model_uri(str(cfg.run))))
+    model, card, run_id = load_model(cfg.run, cfg.mlflow.tracking_uri, Path(cfg.paths.root))
+    return predict_with(model, card, cfg, meshes, scoring_notes(run_id))
 
 
-def scoring_notes(uri: str) -> list[str]:
+def scoring_notes(run_id: str | None) -> list[str]:
     """A note where the model's run says it was never scored: trained without test parts, to deploy (its
     MLflow tag `scored`, `pipe.tracking.log_published`). None for a scored model, or one logged before runs
     said so."""
-    run_id = mlflow.models.get_model_info(uri).run_id
     if run_id and MlflowClient().get_run(run_id).data.tags.get("scored") == "false":
         return [f"note: the model's run {run_id} had no test parts: the model was never scored on held-out parts"]
     return []
