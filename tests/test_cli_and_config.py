@@ -169,9 +169,33 @@ def test_a_recorded_dataset_is_never_generated_and_its_missing_folder_is_named(t
     assert list((tmp_path / "mylab").iterdir()) == []
 
 
+def test_no_synthetic_dataset_is_generated_that_lacks_the_domains_parts(tmp_path):
+    """A recorded dataset's folder mistyped under the default data=synthetic, or a family generated with too
+    few parts for the domain: the folder is named and nothing is written (it used to receive the synthetic
+    dataset, then the run failed on the missing parts)."""
+    from pipe.pipeline import ensure_dataset
+
+    synthetic = {"dir": "mylba", "generate": {"seed": 0}}
+    with pytest.raises(PipeError) as caught:
+        ensure_dataset(synthetic, tmp_path, ("peg4", "dsub9", "peg10"))
+    assert str(caught.value) == (f"{tmp_path / 'mylba'}: no such folder: the synthetic dataset would be generated "
+                                 "here without the domain's part(s) peg4, peg10; for recordings of your own give "
+                                 "data=recorded and data.dir their dataset folder")
+    assert not (tmp_path / "mylba").exists()
+    family = {"dir": "pins_2", "generate": {"seed": 0, "family": "pins", "count": 2}}
+    wanted = tuple(f"pins_{k:04d}" for k in range(9))
+    with pytest.raises(PipeError, match=r"/pins_2: no such folder: the 2 pins parts would be generated here without "
+                                        r"the domain's part\(s\) pins_0002, pins_0003, pins_0004, pins_0005, "
+                                        r"pins_0006 and 2 more; a larger data\.generate\.count generates more"):
+        ensure_dataset(family, tmp_path, wanted)
+    assert not (tmp_path / "pins_2").exists()
+    assert ensure_dataset(family, tmp_path, wanted[:2]) == tmp_path / "pins_2"     # parts it has: generated
+    assert sorted(p.name for p in (tmp_path / "pins_2" / "parts").iterdir()) == ["pins_0000", "pins_0001"]
+
+
 def test_train_with_data_recorded_needs_the_folder_and_refuses_a_missing_one(tmp_path):
     """`data=recorded` (README, "Bringing your own recordings"): data.dir must be given, and a mistyped one is
-    named instead of receiving the synthetic dataset, as the default data config would write it there."""
+    named instead of read as an empty dataset or filled with a generated one."""
     without = run_train("data=recorded", f"hydra.run.dir={tmp_path / 'run'}")
     assert without.returncode == 2 and "Traceback" not in without.stderr
     assert "data.dir= must be given, e.g. python train.py data=recorded data.dir=data/mylab" in without.stderr

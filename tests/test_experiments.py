@@ -438,6 +438,7 @@ def test_gpr_targets_perturbations_move_the_neutral_start_alone_each_by_a_draw_o
     assert not torch.equal(starts[1], starts[2])    # each perturbation its own draw (a bug once drew one for all)
 
 
+@pytest.mark.slow    # identifies the tiny run's training parts from four starts: about 3 min here
 def test_gpr_targets_neutral_start_is_the_runs_gpr_and_a_perturbed_start_moves_the_targets(trained_run, tmp_path):
     """Perturbation 0 is the evaluation's own gpr to the digit (PIPE and `nearest` beside it too); a start moved by
     0 is the same fit, and so is the consensus of identical targets; a start moved by 0.3 moves the targets."""

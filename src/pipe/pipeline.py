@@ -14,7 +14,7 @@ import copy
 import json
 import logging
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -30,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pipe.data.alignment import align_final_depth
 from pipe.data.batches import stack_clouds, stack_geometry, stack_slices
+from pipe.data.domain import domain_from_config
 from pipe.data.prepared import PartData, PreparedDomain, data_scales, prepare_domain
 from pipe.data.slices import SLICE_SIZE
 from pipe.data.spec import SPEC_FILE
@@ -48,7 +49,7 @@ from pipe.model.sections import SECTION_SIZE, SectionCode
 from pipe.model.slices import SliceCode
 from pipe.model.uncertainty import BandSettings
 from pipe.model.vae import PointCloudVAE
-from pipe.synthetic import generate_dataset
+from pipe.synthetic import generate_dataset, generated_part_names
 from pipe.tracking import (
     StageLogger,
     dvc_dataset_tags,
@@ -171,20 +172,32 @@ class SeedsResult:
         return summarise([{"reconstruction": m} for m in per_seed])["reconstruction"]
 
 
-def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path) -> Path:
+def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path, parts: Sequence[str] = ()) -> Path:
     """The dataset folder (a relative `dir` from the project root); a synthetic one (the catalogue, or `count`
-    parts of a `family`) is generated first when it is missing, a recorded one (`generate` null) is refused."""
+    parts of a `family`) is generated first when it is missing, a recorded one (`generate` null) is refused.
+    Nothing is generated when the synthetic dataset would lack any of the domain's `parts`: a recorded
+    dataset's folder mistyped under the default `data=synthetic` is named instead of filled."""
     root = project_root / data_cfg["dir"]
     if not (root / SPEC_FILE).is_file():
         generate = data_cfg.get("generate")
         if generate is None:
             problem = f"no {SPEC_FILE} in this folder" if root.is_dir() else "no such folder"
             raise PipeError(f"{problem}; point data.dir at a dataset folder (`pipe data import` writes one)", root)
-        family = generate.get("family")
-        log.info("generating the synthetic dataset%s into %s (seed %s)",
-                 f" of {generate['count']} {family} parts" if family else "", root, generate["seed"])
+        family = str(generate["family"]) if generate.get("family") else None
+        count = int(generate["count"]) if family else 0
+        what = f"the {count} {family} parts" if family else "the synthetic dataset"
+        generated = set(generated_part_names(family, count))
+        missing = [part for part in parts if part not in generated]
+        if missing:
+            shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+            problem = "no such folder" if not root.exists() else f"no {SPEC_FILE} in this folder"
+            hint = ("a larger data.generate.count generates more of them" if family else
+                    "for recordings of your own give data=recorded and data.dir their dataset folder")
+            raise PipeError(f"{problem}: {what} would be generated here without the domain's part(s) {shown}; "
+                            f"{hint}", root)
+        log.info("generating %s into %s (seed %s)", what, root, generate["seed"])
         if family:
-            generate_dataset(root, seed=int(generate["seed"]), family=str(family), count=int(generate["count"]))
+            generate_dataset(root, seed=int(generate["seed"]), family=family, count=count)
         else:
             generate_dataset(root, seed=int(generate["seed"]))
     return root
@@ -196,7 +209,8 @@ def load_domain(cfg: DictConfig) -> PreparedDomain:
     final depth (pipe.data.alignment)."""
     root = Path(cfg.paths.root)
     prepared = root / cfg.data.prepared if cfg.data.get("prepared") else None
-    domain = prepare_domain(ensure_dataset(cfg.data, root), cfg.data, cfg.domain, prepared)
+    parts = domain_from_config(cfg.domain).parts
+    domain = prepare_domain(ensure_dataset(cfg.data, root, parts), cfg.data, cfg.domain, prepared)
     if not cfg.data.get("align_final_depth", False):
         return domain
     return replace(domain, splits={split: [align_final_depth(part) for part in parts]

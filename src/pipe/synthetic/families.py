@@ -86,13 +86,18 @@ FAMILIES: dict[str, Callable[[str, np.random.Generator], Plug | Pin]] = {
     "dsub": draw_dsub, "rect": draw_rect, "pins": draw_pin}
 
 
-def family_parts(family: str, count: int, seed: int = 0) -> dict[str, Plug | Pin]:
-    """Parts `<family>_0000` ... of a family, part k drawn from its own stream (seed, family, k)."""
+def family_part_names(family: str, count: int) -> list[str]:
+    """The names of a family's first `count` parts, `<family>_0000` ..., without drawing them."""
     if family not in FAMILIES:
         raise PipeError(f"unknown part family {family!r}; the families are: {', '.join(FAMILIES)}")
     if count < 1:
         raise PipeError(f"--count must be at least 1, not {count}")
+    return [numbered_part(family, k) for k in range(count)]
+
+
+def family_parts(family: str, count: int, seed: int = 0) -> dict[str, Plug | Pin]:
+    """Parts `<family>_0000` ... of a family, part k drawn from its own stream (seed, family, k)."""
+    names = family_part_names(family, count)
     draw = FAMILIES[family]
-    names = [numbered_part(family, k) for k in range(count)]
     return {name: draw(name, np.random.default_rng([seed, zlib.crc32(family.encode()), k]))
             for k, name in enumerate(names)}

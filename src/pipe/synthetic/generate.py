@@ -14,7 +14,7 @@ from pipe.errors import PipeError
 from pipe.synthetic.catalogue import CATALOGUE, Pin, Plug
 from pipe.synthetic.contact import TrialConditions, static_curves, target_depth
 from pipe.synthetic.dynamics import INTERNAL_RATE_HZ, ContactTables, command_profile, simulate, static_tcp_depth
-from pipe.synthetic.families import DEFAULT_COUNT, family_parts
+from pipe.synthetic.families import DEFAULT_COUNT, family_part_names, family_parts
 from pipe.synthetic.meshes import part_mesh
 
 SAMPLE_RATE_HZ = 500
@@ -143,6 +143,12 @@ def write_dataset(out: Path, parts: dict[str, Plug | Pin], command: str, trials:
                    [trial.time, trial.depth, trial.force, trial.force_clean], ["%.4f", "%.5f", "%.5f", "%.5f"])
         _write_csv(part_dir / "truth" / stem, ["p_z", "F_static"], [trial.static_depth, trial.static_force],
                    ["%.5f", "%.5f"])
+
+
+def generated_part_names(family: str | None = None, count: int = DEFAULT_COUNT) -> list[str]:
+    """The parts `generate_dataset` writes (the whole catalogue, or `count` parts of a `family`), known
+    without simulating them."""
+    return list(CATALOGUE) if family is None else family_part_names(family, count)
 
 
 def generate_dataset(out: str | Path, seed: int = 0, parts: list[str] | None = None, family: str | None = None,
