@@ -1722,3 +1722,46 @@ def test_gpr_cv_pairs_pipes_folds_with_gprs_seed_by_seed(tmp_path):
     sd = statistics.stdev
     assert (f"| pins | 42.50 ± {sd([30, 55]):.2f} | 35.00 ± {sd([20, 50]):.2f} | +10.00, +5.00 | "
             f"7.50 ± {sd([10, 5]):.2f} | 2 of 4 |") in printed
+
+
+def test_kernel_choice_table_shows_one_line_per_distinct_result_of_a_settings_repeats(tmp_path):
+    """Two repeats alike give one line and `yes`; two that differ give a line each and `no (2 results)`; runs
+    with overrides are their own group."""
+    def row(setting, kernels, fit, loss, overrides=()):
+        return {"domain": "dsub", "seed": 0, "overrides": list(overrides), "setting": setting, "kernels": kernels,
+                "fit_F": fit, "parts": {"dsub26": {"fit_F": fit, "id_loss": loss, "id_evals": 100.0}}}
+
+    native, generic = "torch AVX2, numba znver3", "torch AVX2, numba generic"
+    rows = [row("native", native, 89.87905, 3.8177321), row("native", native, 89.87905, 3.8177321),
+            row("numba=generic", generic, 88.5, 4.25), row("numba=generic", generic, 87.25, 4.5),
+            row("native", native, 80.0, 9.0, ["evaluation.identification.restarts=1"])]
+    lines = printed_table("kernel_choice.py", rows, tmp_path, "--table").splitlines()
+    assert lines[2:] == [
+        f"| dsub | 0 | native | {native} | yes | 89.8791 | dsub26 89.8791 (3.81773) |",
+        f"| dsub | 0 | numba=generic | {generic} | no (2 results) | 88.5000 | dsub26 88.5000 (4.25) |",
+        f"| dsub | 0 | numba=generic | {generic} | no (2 results) | 87.2500 | dsub26 87.2500 (4.5) |",
+        f"| dsub evaluation.identification.restarts=1 | 0 | native | {native} | yes | 80.0000 | dsub26 80.0000 (9) |"]
+
+
+def test_kernel_choice_refuses_an_unknown_setting_before_any_work(tmp_path):
+    done = run_here("kernel_choice.py", str(tmp_path / "rows.jsonl"), "--settings", "native", "numba")
+    assert done.returncode == 1
+    assert "unknown kernel setting 'numba': give native, numba=<cpu> or torch=<level>" in done.stderr
+    assert not (tmp_path / "rows.jsonl").exists()
+
+
+@pytest.mark.slow
+def test_kernel_choice_runs_each_setting_in_a_process_with_its_kernels(tmp_path):
+    """dsub's oracle from one start: the native run repeats itself to the digit, and each row records the
+    kernels its process ran on (numba compiled for `generic` where the setting asks for it)."""
+    from pipe.machine import cpu_kernels
+
+    rows_file = tmp_path / "rows.jsonl"
+    run_script("kernel_choice.py", str(rows_file), "--domain", "dsub", "--settings", "native", "numba=generic",
+               "--repeat", "2", "--override", "evaluation.identification.restarts=1")
+    rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
+    assert [(row["setting"], row["repeat"]) for row in rows] == [("native", 0), ("numba=generic", 0),
+                                                                  ("native", 1), ("numba=generic", 1)]
+    assert rows[0]["kernels"] == cpu_kernels() and rows[1]["kernels"].endswith("numba generic")
+    assert rows[0]["parts"] == rows[2]["parts"] and list(rows[0]["parts"]) == ["dsub26"]
+    assert 0 < rows[0]["fit_F"] < 100 and rows[0]["overrides"] == ["evaluation.identification.restarts=1"]

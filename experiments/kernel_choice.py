@@ -1,0 +1,136 @@
+"""Issue 9, "figures move with the machine": does the oracle's identification end elsewhere when only the
+instruction sets of the numeric kernels change, as they do between two hosts? The same code gave other oracle
+and gpr figures on two hosts whose machine records read alike, one with AVX-512 (docs/results-history.md,
+"The same code's `dvc repro` on an AMD EPYC without AVX-512"). On one host this script identifies a paper
+domain's test parts as its oracle does (the evaluation's settings, seed and starts; no trained run needed: the
+oracle reads no code) once per kernel setting, each in a process of its own started with the setting's
+environment (the kernels are chosen when torch and numba load): `native` (the host's own), `numba=<cpu>`
+(NUMBA_CPU_NAME, the CPU numba compiles its loops for, e.g. `generic`) and `torch=<level>`
+(ATEN_CPU_CAPABILITY, the level torch dispatches its kernels at, e.g. `default`), joined by commas. Every
+setting runs `--repeat` times, so a row that moves with the kernels can be told from one that moves anyway.
+One row per setting and repeat: the kernels as `pipe.machine` records them, the oracle's FIT(F) [%] over the
+domain and per part its FIT(F), the kept start's objective and its evaluations.
+Results: docs/experiments.md, "The oracle under other kernels on one host".
+Usage (one thread per process, as the results were measured):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/kernel_choice.py OUT.jsonl --domain pins --seed 0 \
+      --settings native numba=generic torch=default numba=generic,torch=default --repeat 2
+  python experiments/kernel_choice.py OUT.jsonl --table
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+VARIABLES = {"numba": "NUMBA_CPU_NAME", "torch": "ATEN_CPU_CAPABILITY"}
+
+
+def setting_environment(setting: str) -> dict[str, str]:
+    """The environment variables of a kernel setting: `native` sets none, `numba=generic,torch=default` two."""
+    if setting == "native":
+        return {}
+    variables = {}
+    for item in setting.split(","):
+        kind, _, value = item.partition("=")
+        if kind not in VARIABLES or not value:
+            raise SystemExit(f"unknown kernel setting {item!r}: give native, numba=<cpu> or torch=<level>, joined "
+                             "by commas")
+        variables[VARIABLES[kind]] = value
+    return variables
+
+
+def identify_here(domain: str, seed: int, overrides: list[str]) -> dict:
+    """The domain's oracle identified in this process, with the kernels its environment chose."""
+    import lightning as L
+    import torch
+    from twin_oracle import paper_config
+
+    from pipe.evaluation.context import EvalContext
+    from pipe.evaluation.evaluate import evaluate_methods
+    from pipe.machine import cpu_kernels
+    from pipe.model import ltv
+    from pipe.pipeline import build_components, build_model, load_domain
+
+    cfg = paper_config(domain, seed, ["threads=1", *overrides])
+    ltv.set_backend(cfg.simulator)
+    L.seed_everything(cfg.seed, workers=True)
+    data = load_domain(cfg)
+    components = build_components(cfg)
+    test = data.splits["test"]
+    model = build_model(cfg, data, components).eval()
+    ctx = EvalContext(model, torch.zeros(len(test), components[1].latent_dim),
+                      {p.name: i for i, p in enumerate(test)}, data.splits["train"], 1.0 / cfg.data.rate_hz,
+                      cfg.seed, dict(cfg.evaluation))
+    result = evaluate_methods(ctx, test, ["oracle"])["oracle"]
+    return {"kernels": cpu_kernels(), "fit_F": result.domain["fit_F"],
+            "parts": {name: {key: scores[key] for key in ("fit_F", "id_loss", "id_evals")}
+                      for name, scores in result.per_part.items()}}
+
+
+def table(rows: list[dict]) -> str:
+    """Per domain (with its overrides), seed and setting: the kernels, and the oracle's FIT(F) [%] with each
+    part's FIT(F) and identification loss [N^2], one line per distinct result of the repeats (a setting that
+    repeats itself shows one)."""
+    results: dict[tuple[str, int, str], list[tuple[str, str]]] = defaultdict(list)
+    kernels = {}
+    for row in rows:
+        key = (" ".join([row["domain"], *row.get("overrides", [])]), row["seed"], row["setting"])
+        kernels[key] = row["kernels"]
+        parts = "; ".join(f"{name} {part['fit_F']:.4f} ({part['id_loss']:.6g})" for name, part in row["parts"].items())
+        if (result := (f"{row['fit_F']:.4f}", parts)) not in results[key]:
+            results[key].append(result)
+    lines = ["| domain | seed | setting | kernels | repeats alike | oracle FIT(F) | per part: FIT(F) (loss) |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for (domain, seed, setting), seen in results.items():
+        alike = "yes" if len(seen) == 1 else f"no ({len(seen)} results)"
+        lines += [f"| {domain} | {seed} | {setting} | {kernels[(domain, seed, setting)]} | {alike} | {fit} | {parts} |"
+                  for fit, parts in seen]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", help="JSON lines file the rows are appended to (or read, with --table)")
+    ap.add_argument("--domain", default="pins", help="a paper domain (default pins)")
+    ap.add_argument("--seed", type=int, default=0, help="the run's seed, which draws the oracle's starts (default 0)")
+    ap.add_argument("--settings", nargs="+", default=["native", "numba=generic", "torch=default"],
+                    help="kernel settings: native, numba=<cpu>, torch=<level>, joined by commas")
+    ap.add_argument("--repeat", type=int, default=2, help="runs of each setting (default 2)")
+    ap.add_argument("--override", nargs="*", default=[], help="Hydra overrides of the domain's config, e.g. "
+                    "evaluation.identification.restarts=2 (none when the results were measured)")
+    ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.worker:
+        print(json.dumps(identify_here(args.domain, args.seed, args.override)))
+        return
+    from summarise import read_rows
+
+    if args.table:
+        print(table(read_rows(args.out)))
+        return
+    environments = {setting: setting_environment(setting) for setting in args.settings}
+    from common import append_row
+
+    for repeat in range(args.repeat):
+        for setting, variables in environments.items():
+            env = {key: value for key, value in os.environ.items() if key not in VARIABLES.values()}
+            result = subprocess.run([sys.executable, __file__, args.out, "--worker", "--domain", args.domain,
+                                     "--seed", str(args.seed), "--override", *args.override],
+                                    env={**env, **variables}, capture_output=True,
+                                    text=True, cwd=ROOT)
+            if result.returncode != 0:
+                raise SystemExit(f"the {setting} run failed:\n{result.stderr[-2000:]}")
+            found = json.loads(result.stdout.strip().splitlines()[-1])
+            append_row(args.out, {"domain": args.domain, "seed": args.seed, "overrides": args.override,
+                                  "setting": setting, "repeat": repeat, **found})
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PROJECT_ROOT", str(ROOT))
+    main()
