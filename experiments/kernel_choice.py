@@ -9,11 +9,12 @@ environment (the kernels are chosen when torch and numba load): `native` (the ho
 (ATEN_CPU_CAPABILITY, the level torch dispatches its kernels at, e.g. `default`), joined by commas. Every
 setting runs `--repeat` times, so a row that moves with the kernels can be told from one that moves anyway.
 One row per setting and repeat: the kernels as `pipe.machine` records them, the oracle's FIT(F) [%] over the
-domain and per part its FIT(F), the kept start's objective and its evaluations.
+domain and per part its FIT(F), the kept start's mean squared force error [N^2] and its evaluations.
 Results: docs/experiments.md, "The oracle under other kernels on one host".
-Usage (one thread per process, as the results were measured):
-  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/kernel_choice.py OUT.jsonl --domain pins --seed 0 \
-      --settings native numba=generic torch=default numba=generic,torch=default --repeat 2
+Usage (one thread per process, as the results were measured; `--override` takes Hydra overrides of the
+domain's config, e.g. evaluation.identification.restarts=24 or data.dir=):
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/kernel_choice.py OUT.jsonl --domain conn --seed 0 \
+      --settings native numba=generic torch=default numba=generic,torch=default --repeat 1
   python experiments/kernel_choice.py OUT.jsonl --table
 """
 from __future__ import annotations
@@ -102,7 +103,7 @@ def main() -> None:
                     help="kernel settings: native, numba=<cpu>, torch=<level>, joined by commas")
     ap.add_argument("--repeat", type=int, default=2, help="runs of each setting (default 2)")
     ap.add_argument("--override", nargs="*", default=[], help="Hydra overrides of the domain's config, e.g. "
-                    "evaluation.identification.restarts=2 (none when the results were measured)")
+                    "evaluation.identification.restarts=24")
     ap.add_argument("--table", action="store_true", help="print the table of the rows in OUT and stop")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -122,8 +123,7 @@ def main() -> None:
             env = {key: value for key, value in os.environ.items() if key not in VARIABLES.values()}
             result = subprocess.run([sys.executable, __file__, args.out, "--worker", "--domain", args.domain,
                                      "--seed", str(args.seed), "--override", *args.override],
-                                    env={**env, **variables}, capture_output=True,
-                                    text=True, cwd=ROOT)
+                                    env={**env, **variables}, capture_output=True, text=True, cwd=ROOT)
             if result.returncode != 0:
                 raise SystemExit(f"the {setting} run failed:\n{result.stderr[-2000:]}")
             found = json.loads(result.stdout.strip().splitlines()[-1])

@@ -1757,11 +1757,12 @@ def test_kernel_choice_runs_each_setting_in_a_process_with_its_kernels(tmp_path)
     from pipe.machine import cpu_kernels
 
     rows_file = tmp_path / "rows.jsonl"
+    overrides = ["evaluation.identification.restarts=1", f"data.dir={tmp_path / 'data'}"]
     run_script("kernel_choice.py", str(rows_file), "--domain", "dsub", "--settings", "native", "numba=generic",
-               "--repeat", "2", "--override", "evaluation.identification.restarts=1")
+               "--repeat", "2", "--override", *overrides)
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     assert [(row["setting"], row["repeat"]) for row in rows] == [("native", 0), ("numba=generic", 0),
                                                                   ("native", 1), ("numba=generic", 1)]
     assert rows[0]["kernels"] == cpu_kernels() and rows[1]["kernels"].endswith("numba generic")
     assert rows[0]["parts"] == rows[2]["parts"] and list(rows[0]["parts"]) == ["dsub26"]
-    assert 0 < rows[0]["fit_F"] < 100 and rows[0]["overrides"] == ["evaluation.identification.restarts=1"]
+    assert 0 < rows[0]["fit_F"] < 100 and rows[0]["overrides"] == overrides
