@@ -191,6 +191,11 @@ def test_no_synthetic_dataset_is_generated_that_lacks_the_domains_parts(tmp_path
     assert not (tmp_path / "pins_2").exists()
     assert ensure_dataset(family, tmp_path, wanted[:2]) == tmp_path / "pins_2"     # parts it has: generated
     assert sorted(p.name for p in (tmp_path / "pins_2" / "parts").iterdir()) == ["pins_0000", "pins_0001"]
+    # a family without a count (`+data.generate.family=rect` on data=synthetic): a KeyError traceback before
+    with pytest.raises(PipeError, match=r"data\.generate\.family=rect needs data\.generate\.count, the number of "
+                                        r"parts to generate: start from data=family"):
+        ensure_dataset({"dir": "rect", "generate": {"seed": 0, "family": "rect"}}, tmp_path, ())
+    assert not (tmp_path / "rect").exists()
 
 
 def test_train_with_data_recorded_needs_the_folder_and_refuses_a_missing_one(tmp_path):

@@ -184,6 +184,9 @@ def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path, parts: Seque
             problem = f"no {SPEC_FILE} in this folder" if root.is_dir() else "no such folder"
             raise PipeError(f"{problem}; point data.dir at a dataset folder (`pipe data import` writes one)", root)
         family = str(generate["family"]) if generate.get("family") else None
+        if family and generate.get("count") is None:
+            raise PipeError(f"data.generate.family={family} needs data.generate.count, the number of parts to "
+                            "generate: start from data=family (e.g. data=family data.generate.family=rect)")
         count = int(generate["count"]) if family else 0
         what = f"the {count} {family} parts" if family else "the synthetic dataset"
         generated = set(generated_part_names(family, count))
