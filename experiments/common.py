@@ -37,6 +37,12 @@ def load_run(run_dir: Path, **stage_overrides: int) -> tuple[DictConfig, Prepare
     with open_dict(cfg):
         cfg.trainer.progress_bar = False
         cfg.stages.vae.update(stage_overrides)
+    return set_up(cfg)
+
+
+def set_up(cfg: DictConfig) -> tuple[DictConfig, PreparedDomain, tuple]:
+    """A config's prepared domain and freshly built encoder, head and dynamic model, seeded as train.py seeds
+    them."""
     ltv.set_backend(cfg.simulator)
     L.seed_everything(cfg.seed, workers=True)
     data = load_domain(cfg)
@@ -57,11 +63,11 @@ def two_candidates(run_dir: Path) -> list[Path]:
     return found
 
 
-def oracle_context(run_dir: Path) -> tuple[DictConfig, list, EvalContext]:
-    """The run's config, its test parts and an evaluation context to identify them in as the oracle does: the
-    run's untrained model (identification uses only the head's profile structure and the dynamic model) and
-    zero codes (the oracle's free profiles read none)."""
-    cfg, data, (encoder, head, dynamics) = load_run(run_dir)
+def oracle_context(run: Path | DictConfig) -> tuple[DictConfig, list, EvalContext]:
+    """The config of a run's folder (or a config composed without one), its test parts and an evaluation
+    context to identify them in as the oracle does: the run's untrained model (identification uses only the
+    head's profile structure and the dynamic model) and zero codes (the oracle's free profiles read none)."""
+    cfg, data, (encoder, head, dynamics) = load_run(run) if isinstance(run, Path) else set_up(run)
     train, test = data.splits["train"], data.splits["test"]
     model = build_model(cfg, data, (encoder, head, dynamics)).eval()
     ctx = EvalContext(model, torch.zeros(len(test), head.latent_dim), {p.name: i for i, p in enumerate(test)},

@@ -47,26 +47,13 @@ def setting_environment(setting: str) -> dict[str, str]:
 
 def identify_here(domain: str, seed: int, overrides: list[str]) -> dict:
     """The domain's oracle identified in this process, with the kernels its environment chose."""
-    import lightning as L
-    import torch
+    from common import oracle_context
     from twin_oracle import paper_config
 
-    from pipe.evaluation.context import EvalContext
     from pipe.evaluation.evaluate import evaluate_methods
     from pipe.machine import cpu_kernels
-    from pipe.model import ltv
-    from pipe.pipeline import build_components, build_model, load_domain
 
-    cfg = paper_config(domain, seed, ["threads=1", *overrides])
-    ltv.set_backend(cfg.simulator)
-    L.seed_everything(cfg.seed, workers=True)
-    data = load_domain(cfg)
-    components = build_components(cfg)
-    test = data.splits["test"]
-    model = build_model(cfg, data, components).eval()
-    ctx = EvalContext(model, torch.zeros(len(test), components[1].latent_dim),
-                      {p.name: i for i, p in enumerate(test)}, data.splits["train"], 1.0 / cfg.data.rate_hz,
-                      cfg.seed, dict(cfg.evaluation))
+    _, test, ctx = oracle_context(paper_config(domain, seed, ["threads=1", *overrides]))
     result = evaluate_methods(ctx, test, ["oracle"])["oracle"]
     return {"kernels": cpu_kernels(), "fit_F": result.domain["fit_F"],
             "parts": {name: {key: scores[key] for key in ("fit_F", "id_loss", "id_evals")}

@@ -179,9 +179,9 @@ def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path, parts: Seque
     dataset's folder mistyped under the default `data=synthetic` is named instead of filled."""
     root = project_root / data_cfg["dir"]
     if not (root / SPEC_FILE).is_file():
+        problem = f"no {SPEC_FILE} in this folder" if root.is_dir() else "no such folder"
         generate = data_cfg.get("generate")
         if generate is None:
-            problem = f"no {SPEC_FILE} in this folder" if root.is_dir() else "no such folder"
             raise PipeError(f"{problem}; point data.dir at a dataset folder (`pipe data import` writes one)", root)
         family = str(generate["family"]) if generate.get("family") else None
         if family and generate.get("count") is None:
@@ -193,7 +193,6 @@ def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path, parts: Seque
         missing = [part for part in parts if part not in generated]
         if missing:
             shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
-            problem = "no such folder" if not root.exists() else f"no {SPEC_FILE} in this folder"
             hint = ("a larger data.generate.count generates more of them" if family else
                     "for recordings of your own give data=recorded and data.dir their dataset folder")
             raise PipeError(f"{problem}: {what} would be generated here without the domain's part(s) {shown}; "
@@ -212,8 +211,8 @@ def load_domain(cfg: DictConfig) -> PreparedDomain:
     final depth (pipe.data.alignment)."""
     root = Path(cfg.paths.root)
     prepared = root / cfg.data.prepared if cfg.data.get("prepared") else None
-    parts = domain_from_config(cfg.domain).parts
-    domain = prepare_domain(ensure_dataset(cfg.data, root, parts), cfg.data, cfg.domain, prepared)
+    needed = domain_from_config(cfg.domain).parts
+    domain = prepare_domain(ensure_dataset(cfg.data, root, needed), cfg.data, cfg.domain, prepared)
     if not cfg.data.get("align_final_depth", False):
         return domain
     return replace(domain, splits={split: [align_final_depth(part) for part in parts]
