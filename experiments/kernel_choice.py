@@ -4,10 +4,12 @@ and gpr figures on two hosts whose machine records read alike, one with AVX-512 
 "The same code's `dvc repro` on an AMD EPYC without AVX-512"). On one host this script identifies a paper
 domain's test parts as its oracle does (the evaluation's settings, seed and starts; no trained run needed: the
 oracle reads no code) once per kernel setting, each in a process of its own started with the setting's
-environment (the kernels are chosen when torch and numba load): `native` (the host's own), `numba=<cpu>`
-(NUMBA_CPU_NAME, the CPU numba compiles its loops for, e.g. `generic`) and `torch=<level>`
-(ATEN_CPU_CAPABILITY, the level torch dispatches its kernels at, e.g. `default`), joined by commas. Every
-setting runs `--repeat` times, so a row that moves with the kernels can be told from one that moves anyway.
+environment (the kernels are chosen when the libraries load): `native` (the host's own), `numba=<cpu>`
+(NUMBA_CPU_NAME, the CPU numba compiles its loops for, e.g. `generic`), `torch=<level>` (ATEN_CPU_CAPABILITY,
+the level torch dispatches its kernels at, e.g. `default`), `openblas=<core>` (OPENBLAS_CORETYPE, the kernels
+numpy's and scipy's OpenBLAS run, e.g. `Sandybridge`) and `mkl=<branch>` (MKL_CBWR, torch's MKL), joined by
+commas. Every setting runs `--repeat` times, so a row that moves with the kernels can be told from one that
+moves anyway.
 One row per setting and repeat: the kernels as `pipe.machine` records them, the oracle's FIT(F) [%] over the
 domain and per part its FIT(F), the kept start's mean squared force error [N^2] and its evaluations.
 Results: docs/experiments.md, "The oracle under other kernels on one host".
@@ -15,6 +17,8 @@ Usage (one thread per process, as the results were measured; `--override` takes 
 domain's config, e.g. evaluation.identification.restarts=24 or data.dir=):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/kernel_choice.py OUT.jsonl --domain conn --seed 0 \
       --settings native numba=generic torch=default numba=generic,torch=default --repeat 1
+  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/kernel_choice.py OUT.jsonl --domain conn --seed 0 \
+      --settings native openblas=Sandybridge mkl=COMPATIBLE --repeat 1
   python experiments/kernel_choice.py OUT.jsonl --table
 """
 from __future__ import annotations
@@ -28,7 +32,8 @@ from collections import defaultdict
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-VARIABLES = {"numba": "NUMBA_CPU_NAME", "torch": "ATEN_CPU_CAPABILITY"}
+VARIABLES = {"numba": "NUMBA_CPU_NAME", "torch": "ATEN_CPU_CAPABILITY", "openblas": "OPENBLAS_CORETYPE",
+             "mkl": "MKL_CBWR"}
 
 
 def setting_environment(setting: str) -> dict[str, str]:
@@ -39,8 +44,8 @@ def setting_environment(setting: str) -> dict[str, str]:
     for item in setting.split(","):
         kind, _, value = item.partition("=")
         if kind not in VARIABLES or not value:
-            raise SystemExit(f"unknown kernel setting {item!r}: give native, numba=<cpu> or torch=<level>, joined "
-                             "by commas")
+            raise SystemExit(f"unknown kernel setting {item!r}: give native, or numba=<cpu>, torch=<level>, "
+                             "openblas=<core> or mkl=<branch> joined by commas")
         variables[VARIABLES[kind]] = value
     return variables
 
@@ -87,7 +92,8 @@ def main() -> None:
     ap.add_argument("--domain", default="pins", help="a paper domain (default pins)")
     ap.add_argument("--seed", type=int, default=0, help="the run's seed, which draws the oracle's starts (default 0)")
     ap.add_argument("--settings", nargs="+", default=["native", "numba=generic", "torch=default"],
-                    help="kernel settings: native, numba=<cpu>, torch=<level>, joined by commas")
+                    help="kernel settings: native, or numba=<cpu>, torch=<level>, openblas=<core>, mkl=<branch> "
+                    "joined by commas")
     ap.add_argument("--repeat", type=int, default=2, help="runs of each setting (default 2)")
     ap.add_argument("--override", nargs="*", default=[], help="Hydra overrides of the domain's config, e.g. "
                     "evaluation.identification.restarts=24")

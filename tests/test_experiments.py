@@ -1746,23 +1746,25 @@ def test_kernel_choice_table_shows_one_line_per_distinct_result_of_a_settings_re
 def test_kernel_choice_refuses_an_unknown_setting_before_any_work(tmp_path):
     done = run_here("kernel_choice.py", str(tmp_path / "rows.jsonl"), "--settings", "native", "numba")
     assert done.returncode == 1
-    assert "unknown kernel setting 'numba': give native, numba=<cpu> or torch=<level>" in done.stderr
+    assert "unknown kernel setting 'numba': give native, or numba=<cpu>, torch=<level>, openblas=<core>" in done.stderr
     assert not (tmp_path / "rows.jsonl").exists()
 
 
 @pytest.mark.slow
 def test_kernel_choice_runs_each_setting_in_a_process_with_its_kernels(tmp_path):
     """dsub's oracle from one start: the native run repeats itself to the digit, and each row records the
-    kernels its process ran on (numba compiled for `generic` where the setting asks for it)."""
+    kernels its process ran on (numba compiled for `generic` and OpenBLAS on Sandybridge's kernels where the
+    setting asks for them)."""
     from pipe.machine import cpu_kernels
 
     rows_file = tmp_path / "rows.jsonl"
     overrides = ["evaluation.identification.restarts=1", f"data.dir={tmp_path / 'data'}"]
-    run_script("kernel_choice.py", str(rows_file), "--domain", "dsub", "--settings", "native", "numba=generic",
+    lowered = "numba=generic,openblas=Sandybridge"
+    run_script("kernel_choice.py", str(rows_file), "--domain", "dsub", "--settings", "native", lowered,
                "--repeat", "2", "--override", *overrides)
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
-    assert [(row["setting"], row["repeat"]) for row in rows] == [("native", 0), ("numba=generic", 0),
-                                                                  ("native", 1), ("numba=generic", 1)]
-    assert rows[0]["kernels"] == cpu_kernels() and rows[1]["kernels"].endswith("numba generic")
+    assert [(row["setting"], row["repeat"]) for row in rows] == [("native", 0), (lowered, 0), ("native", 1),
+                                                                  (lowered, 1)]
+    assert rows[0]["kernels"] == cpu_kernels() and rows[1]["kernels"].endswith("numba generic, openblas Sandybridge")
     assert rows[0]["parts"] == rows[2]["parts"] and list(rows[0]["parts"]) == ["dsub26"]
     assert 0 < rows[0]["fit_F"] < 100 and rows[0]["overrides"] == overrides

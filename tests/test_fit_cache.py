@@ -79,8 +79,11 @@ def test_a_relative_cache_folder_is_taken_from_the_project_root(tmp_path, monkey
     assert len(list((tmp_path / "runs" / "fits").glob("t-*.pt"))) == 1
 
 
-@pytest.mark.parametrize("change", ["trial", "seed", "settings", "target", "head", "dynamics"])
-def test_whatever_decides_a_fit_changes_its_key(change):
+@pytest.mark.parametrize("change", ["trial", "seed", "settings", "target", "head", "dynamics", "kernels", "scipy"])
+def test_whatever_decides_a_fit_changes_its_key(change, monkeypatch):
+    """Each thing that moves a fit moves its key: the machine's kernels and libraries too (another OpenBLAS
+    kernel type alone moved conn's oracle by 0.71 points: docs/experiments.md, "The oracle under other kernels
+    on one host")."""
     trials = [Profile(p.time, p.depth, p.force) for p in fitted_part.profiles]
     settings, seed, target, head, dynamics = dict(SETTINGS), 0, "force", GaussianHead(32, 4), MDS2()
     before = fit_key("t", trials, target, settings, seed, DT, head, dynamics)
@@ -92,6 +95,10 @@ def test_whatever_decides_a_fit_changes_its_key(change):
         settings["ridge"] = 0.2
     elif change == "target":
         target = "force_clean"
+    elif change in ("kernels", "scipy"):
+        machine = fit_cache.arithmetic()
+        other = {"kernels": machine["kernels"].replace("openblas ", "openblas not-"), "scipy": "0.0.0"}
+        monkeypatch.setattr(fit_cache, "_arithmetic", lambda: {**machine, change: other[change]})
     elif change == "head":
         head = GaussianHead(32, 4, num_local_models=8)
     else:
@@ -145,3 +152,22 @@ def test_a_damaged_stored_fit_is_fitted_again_and_replaced(tmp_path, caplog):
     assert "unreadable" in caplog.text and again.loss == fitted.loss
     assert torch.load(stored, weights_only=True)["loss"] == fitted.loss
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_a_fit_is_keyed_alike_in_every_process_on_the_same_kernels_and_apart_on_others():
+    """The key holds the kernels the libraries chose when they loaded: another process on the same ones keys a
+    fit alike (so later runs reuse it), one told to run other OpenBLAS kernels keys it apart."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import numpy as np; from pipe.data.preprocess import Profile; "
+              "from pipe.evaluation.fit_cache import fit_key; from pipe.plugins.head.gaussian import GaussianHead; "
+              "from pipe.plugins.model.mds2 import MDS2; t = np.linspace(0.0, 1.0, 5); "
+              "print(fit_key('t', [Profile(t, t, t)], 'force', {}, 0, 0.01, GaussianHead(32, 4), MDS2()))")
+    t = np.linspace(0.0, 1.0, 5)
+    here = fit_key("t", [Profile(t, t, t)], "force", {}, 0, 0.01, GaussianHead(32, 4), MDS2())
+    keys = [subprocess.run([sys.executable, "-c", script], env=os.environ | extra, capture_output=True, text=True,
+                           timeout=120) for extra in ({}, {"OPENBLAS_CORETYPE": "Prescott"})]   # no host's own
+    assert keys[0].stdout.strip() == here, keys[0].stderr[-2000:]
+    assert keys[1].stdout.strip() not in ("", here), keys[1].stderr[-2000:]

@@ -44,7 +44,7 @@ def test_the_summary_tables_every_domain_with_pipe_judged_against_each_method(tm
     fake_domain(runs, "dsub", {"pipe": (70.0, 1.0)},
                 machine={"cpu": "AMD EPYC", "cpus": "2", "kernels": "torch AVX512, numba znver4",
                          "system": "Linux-6.18", "python": "3.11.7", "torch": "2.13.0+cpu", "numba": "0.68.1",
-                         "numpy": "2.4.6"})
+                         "numpy": "2.4.6", "scipy": "1.17.1"})
     fake_domain(runs, "pins", {"pipe": (80.0, 0.5), "mean": (82.0, 0.5)}, seeds=(3, 4),
                 machine={"cpu": "AMD EPYC 7B13", "cpus": "2", "system": "Linux-6.1", "python": "3.11.9",
                          "torch": "2.13.0", "numba": "0.61.0", "numpy": "2.2.0"})
@@ -60,7 +60,7 @@ def test_the_summary_tables_every_domain_with_pipe_judged_against_each_method(tm
     assert ("- pins: AMD EPYC 7B13, 2 logical CPUs, Linux-6.1, Python 3.11.9, torch 2.13.0, numba 0.61.0, "
             "numpy 2.2.0\n") in text                  # one from before the kernels were recorded
     assert ("- dsub: AMD EPYC, 2 logical CPUs (kernels: torch AVX512, numba znver4), Linux-6.18, Python 3.11.7, "
-            "torch 2.13.0+cpu, numba 0.68.1, numpy 2.4.6\n") in text
+            "torch 2.13.0+cpu, numba 0.68.1, numpy 2.4.6, scipy 1.17.1\n") in text
     assert json.loads((out / "metrics.json").read_text()) == {
         "conn": {"seeds": [0, 1, 2], "test": {"fit_F": 70.0}}, "dsub": {"seeds": [0, 1, 2], "test": {"fit_F": 70.0}},
         "pins": {"seeds": [3, 4], "test": {"fit_F": 80.0}}}
@@ -141,24 +141,28 @@ def test_a_bad_params_file_is_named_and_nothing_is_written(tmp_path, capsys, con
 
 
 def test_the_machine_record_names_the_instruction_sets_the_kernels_are_told_to_use():
-    """Two hosts of one CPU model name round differently when torch dispatches to other kernels or numba
-    compiles for another CPU: the record follows both, as the environment variables that set them say."""
+    """Two hosts of one CPU model name round differently when torch dispatches to other kernels, numba
+    compiles for another CPU or OpenBLAS picks other kernels (each moves an identification on one host): the
+    record follows all three, as the environment variables that set them say."""
     import os
     import subprocess
     import sys
 
     script = "from pipe.machine import machine_info; print(machine_info()['kernels'])"
-    env = {**os.environ, "ATEN_CPU_CAPABILITY": "default", "NUMBA_CPU_NAME": "generic"}
-    lowered = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
-    assert lowered.stdout == "torch DEFAULT, numba generic\n", lowered.stderr[-2000:]
-    env = {k: v for k, v in os.environ.items() if k not in ("ATEN_CPU_CAPABILITY", "NUMBA_CPU_NAME")}
+    variables = {"ATEN_CPU_CAPABILITY": "default", "NUMBA_CPU_NAME": "generic", "OPENBLAS_CORETYPE": "Sandybridge"}
+    lowered = subprocess.run([sys.executable, "-c", script], env={**os.environ, **variables}, capture_output=True,
+                             text=True, timeout=120)
+    assert lowered.stdout == "torch DEFAULT, numba generic, openblas Sandybridge\n", lowered.stderr[-2000:]
+    env = {k: v for k, v in os.environ.items() if k not in variables}
     native = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
-    assert native.stdout.startswith("torch ") and "numba generic" not in native.stdout, native.stderr[-2000:]
+    assert native.stdout.startswith("torch ") and ", openblas " in native.stdout, native.stderr[-2000:]
+    assert "numba generic" not in native.stdout and "Sandybridge" not in native.stdout, native.stdout
 
 
 def test_the_machine_record_names_this_cpu_and_the_installed_libraries():
     from importlib import metadata
 
+    import scipy
     import torch
 
     from pipe.machine import machine_info
@@ -166,4 +170,5 @@ def test_the_machine_record_names_this_cpu_and_the_installed_libraries():
     info = machine_info()
     assert info["torch"] == metadata.version("torch") and torch.__version__.startswith(info["torch"])
     assert info["numpy"] == np.__version__ and info["cpus"].isdigit() and info["cpu"] not in ("", "unknown")
+    assert info["scipy"] == scipy.__version__          # the identification's L-BFGS-B
     assert all(isinstance(value, str) for value in info.values())

@@ -9,7 +9,7 @@ import platform
 from importlib import metadata
 from pathlib import Path
 
-LIBRARIES = ("torch", "numba", "numpy")
+LIBRARIES = ("torch", "numba", "numpy", "scipy")   # scipy: the identification's L-BFGS-B
 
 
 def cpu_model() -> str:
@@ -24,15 +24,22 @@ def cpu_model() -> str:
 
 def cpu_kernels() -> str:
     """The instruction sets the numeric kernels run on here: torch's dispatch level (AVX2, AVX512, ...;
-    ATEN_CPU_CAPABILITY lowers it) and the CPU numba compiles its loops for (NUMBA_CPU_NAME, else the host's).
-    One CPU model name can hide two of them: two "AMD EPYC" hosts, one with AVX-512, gave other
-    figures from the same code (2026-12-06)."""
+    ATEN_CPU_CAPABILITY lowers it), the CPU numba compiles its loops for (NUMBA_CPU_NAME, else the host's) and
+    the kernels numpy's and scipy's OpenBLAS chose (Haswell, SkylakeX, ...; OPENBLAS_CORETYPE sets them). One
+    CPU model name can hide two of them: two "AMD EPYC" hosts, one with AVX-512, gave other figures from the
+    same code (2026-12-06), and each of the three moves an identification on one host (docs/experiments.md,
+    "The oracle under other kernels on one host")."""
     import numba
+    import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS beside numpy's, for threadpoolctl to find)
     import torch
     from llvmlite import binding
+    from threadpoolctl import threadpool_info
 
     compiled_for = numba.config.CPU_NAME or binding.get_host_cpu_name()
-    return f"torch {torch.backends.cpu.get_cpu_capability()}, numba {compiled_for}"
+    openblas = sorted({lib["architecture"] for lib in threadpool_info()
+                       if lib["internal_api"] == "openblas" and lib.get("architecture")})
+    blas = f", openblas {'/'.join(openblas)}" if openblas else ""
+    return f"torch {torch.backends.cpu.get_cpu_capability()}, numba {compiled_for}{blas}"
 
 
 def _version(name: str) -> str:
@@ -42,8 +49,15 @@ def _version(name: str) -> str:
         return "not installed"
 
 
+def arithmetic() -> dict[str, str]:
+    """What can make the same code round differently on two machines, beside its inputs: the kernels'
+    instruction sets (`cpu_kernels`) and the numeric libraries' versions. A stored fit is reused only where
+    they are the same (`pipe.evaluation.fit_cache`)."""
+    return {"kernels": cpu_kernels(), **{name: _version(name) for name in LIBRARIES}}
+
+
 def machine_info() -> dict[str, str]:
-    """CPU model, logical CPUs, the kernels' instruction sets, operating system, Python and the numeric
-    libraries' versions, as strings."""
-    return {"cpu": cpu_model(), "cpus": str(os.cpu_count()), "kernels": cpu_kernels(), "system": platform.platform(),
-            "python": platform.python_version(), **{name: _version(name) for name in LIBRARIES}}
+    """CPU model, logical CPUs, operating system, Python, the kernels' instruction sets and the numeric
+    libraries' versions (`arithmetic`), as strings."""
+    return {"cpu": cpu_model(), "cpus": str(os.cpu_count()), "system": platform.platform(),
+            "python": platform.python_version(), **arithmetic()}

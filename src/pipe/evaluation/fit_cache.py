@@ -7,8 +7,10 @@ settings, the seed where a start draws from it (the random starts, the neutral s
 period, the head's and the dynamic model's settings (their plain attributes) and the source files of the code
 that computes a fit (the identification and its compiled objective, the simulator, every module of the head's
 and the dynamic model's plugin packages, their compiled kernels among them): a changed file or setting misses
-the cache. A fit is written to a temporary file and renamed into place, so runs in parallel never read half a
-file.
+the cache. The key holds the machine's arithmetic too (`pipe.machine.arithmetic`: the kernels' instruction
+sets and the numeric libraries' versions), which moves a fit as much as a changed setting: a folder carried to
+another machine, or read with other kernels set, is fitted again. A fit is written to a temporary file and
+renamed into place, so runs in parallel never read half a file.
 """
 
 from __future__ import annotations
@@ -29,11 +31,13 @@ import torch
 from torch import nn
 
 from pipe.data.preprocess import Profile
+from pipe.machine import arithmetic
 
 log = logging.getLogger(__name__)
 
 _CODE = ("pipe.evaluation.identification", "pipe.evaluation.compiled_objective")   # and every module of pipe.model
 _PLAIN = (int, float, str, bool)
+_arithmetic = cache(arithmetic)   # the libraries choose their kernels when they load: once per process
 
 
 def module_settings(module: nn.Module) -> dict[str, Any]:
@@ -72,7 +76,7 @@ def fit_key(part: str, trials: list[Profile], target: str, settings: dict[str, A
     digest = hashlib.sha256()
     described = {"part": part, "target": target, "settings": settings, "seed": seed, "dt": dt,
                  "head": [type(head).__qualname__, module_settings(head)],
-                 "dynamics": [type(dynamics).__qualname__, module_settings(dynamics)]}
+                 "dynamics": [type(dynamics).__qualname__, module_settings(dynamics)], "arithmetic": _arithmetic()}
     digest.update(json.dumps(described, sort_keys=True).encode())
     for trial in trials:
         for values in (trial.time, trial.depth, trial.force):

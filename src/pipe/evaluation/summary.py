@@ -21,6 +21,7 @@ import yaml
 from pipe.errors import PipeError
 from pipe.evaluation.spread import Spread, verdict
 from pipe.files import atomic_path, write_text_atomically
+from pipe.machine import LIBRARIES
 
 COLUMNS = (("fit_F", "FIT(F) [%]"), ("fit_dF", "FIT(dF/dt) [%]"), ("rms", "rms [N]"), ("rms_rel", "rms_rel"))
 
@@ -47,7 +48,7 @@ def machine_line(machine: dict[str, str] | None) -> str:
     kernels = f" (kernels: {machine['kernels']})" if "kernels" in machine else ""   # recorded since 2026-12-06
     return (f"{machine['cpu']}, {machine['cpus']} logical CPUs{kernels}, {machine['system']}, "
             f"Python {machine['python']}, "
-            + ", ".join(f"{name} {machine[name]}" for name in ("torch", "numba", "numpy") if name in machine))
+            + ", ".join(f"{name} {machine[name]}" for name in LIBRARIES if name in machine))
 
 
 def domain_folders(runs: Path, domains: list[str] | None) -> list[Path]:
