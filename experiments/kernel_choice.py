@@ -12,7 +12,8 @@ commas. Every setting runs `--repeat` times, so a row that moves with the kernel
 moves anyway.
 One row per setting and repeat: the kernels as `pipe.machine` records them, the oracle's FIT(F) [%] over the
 domain and per part its FIT(F), the kept start's mean squared force error [N^2] and its evaluations.
-Results: docs/experiments.md, "The oracle under other kernels on one host".
+Results: docs/experiments.md, "The oracle under other kernels on one host" and "OpenBLAS's kernels, MKL's, and
+96 starts".
 Usage (one thread per process, as the results were measured; `--override` takes Hydra overrides of the
 domain's config, e.g. evaluation.identification.restarts=24 or data.dir=):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/kernel_choice.py OUT.jsonl --domain conn --seed 0 \

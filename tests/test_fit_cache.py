@@ -82,8 +82,8 @@ def test_a_relative_cache_folder_is_taken_from_the_project_root(tmp_path, monkey
 @pytest.mark.parametrize("change", ["trial", "seed", "settings", "target", "head", "dynamics", "kernels", "scipy"])
 def test_whatever_decides_a_fit_changes_its_key(change, monkeypatch):
     """Each thing that moves a fit moves its key: the machine's kernels and libraries too (another OpenBLAS
-    kernel type alone moved conn's oracle by 0.71 points: docs/experiments.md, "The oracle under other kernels
-    on one host")."""
+    kernel type alone moved conn's oracle by 0.71 points: docs/experiments.md, "OpenBLAS's kernels, MKL's, and
+    96 starts")."""
     trials = [Profile(p.time, p.depth, p.force) for p in fitted_part.profiles]
     settings, seed, target, head, dynamics = dict(SETTINGS), 0, "force", GaussianHead(32, 4), MDS2()
     before = fit_key("t", trials, target, settings, seed, DT, head, dynamics)

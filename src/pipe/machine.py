@@ -28,7 +28,7 @@ def cpu_kernels() -> str:
     the kernels numpy's and scipy's OpenBLAS chose (Haswell, SkylakeX, ...; OPENBLAS_CORETYPE sets them). One
     CPU model name can hide two of them: two "AMD EPYC" hosts, one with AVX-512, gave other figures from the
     same code (2026-12-06), and each of the three moves an identification on one host (docs/experiments.md,
-    "The oracle under other kernels on one host")."""
+    "The oracle under other kernels on one host" and "OpenBLAS's kernels, MKL's, and 96 starts")."""
     import numba
     import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS beside numpy's, for threadpoolctl to find)
     import torch
