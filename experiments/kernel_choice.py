@@ -7,9 +7,10 @@ oracle reads no code) once per kernel setting, each in a process of its own star
 environment (the kernels are chosen when the libraries load): `native` (the host's own), `numba=<cpu>`
 (NUMBA_CPU_NAME, the CPU numba compiles its loops for, e.g. `generic`), `torch=<level>` (ATEN_CPU_CAPABILITY,
 the level torch dispatches its kernels at, e.g. `default`), `openblas=<core>` (OPENBLAS_CORETYPE, the kernels
-numpy's and scipy's OpenBLAS run, e.g. `Sandybridge`) and `mkl=<branch>` (MKL_CBWR, torch's MKL), joined by
-commas. Every setting runs `--repeat` times, so a row that moves with the kernels can be told from one that
-moves anyway.
+numpy's and scipy's OpenBLAS run, e.g. `Sandybridge`), `mkl=<branch>` (MKL_CBWR, torch's MKL) and
+`numpy_off=<targets>` (NPY_DISABLE_CPU_FEATURES, numpy's own SIMD dispatch targets turned off, joined by +, e.g.
+`X86_V3`), joined by commas. Every setting runs `--repeat` times, so a row that moves with the kernels can be
+told from one that moves anyway.
 One row per setting and repeat: the kernels as `pipe.machine` records them, the oracle's FIT(F) [%] over the
 domain and per part its FIT(F), the kept start's mean squared force error [N^2] and its evaluations.
 Results: docs/experiments.md, "The oracle under other kernels on one host" and "OpenBLAS's kernels, MKL's, and
@@ -34,11 +35,12 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 VARIABLES = {"numba": "NUMBA_CPU_NAME", "torch": "ATEN_CPU_CAPABILITY", "openblas": "OPENBLAS_CORETYPE",
-             "mkl": "MKL_CBWR"}
+             "mkl": "MKL_CBWR", "numpy_off": "NPY_DISABLE_CPU_FEATURES"}
 
 
 def setting_environment(setting: str) -> dict[str, str]:
-    """The environment variables of a kernel setting: `native` sets none, `numba=generic,torch=default` two."""
+    """The environment variables of a kernel setting: `native` sets none, `numba=generic,torch=default` two;
+    `numpy_off=X86_V3+X86_V4` turns two of numpy's dispatch targets off (its list takes spaces)."""
     if setting == "native":
         return {}
     variables = {}
@@ -46,8 +48,8 @@ def setting_environment(setting: str) -> dict[str, str]:
         kind, _, value = item.partition("=")
         if kind not in VARIABLES or not value:
             raise SystemExit(f"unknown kernel setting {item!r}: give native, or numba=<cpu>, torch=<level>, "
-                             "openblas=<core> or mkl=<branch> joined by commas")
-        variables[VARIABLES[kind]] = value
+                             "openblas=<core>, mkl=<branch> or numpy_off=<targets joined by +> joined by commas")
+        variables[VARIABLES[kind]] = value.replace("+", " ")
     return variables
 
 
@@ -93,8 +95,8 @@ def main() -> None:
     ap.add_argument("--domain", default="pins", help="a paper domain (default pins)")
     ap.add_argument("--seed", type=int, default=0, help="the run's seed, which draws the oracle's starts (default 0)")
     ap.add_argument("--settings", nargs="+", default=["native", "numba=generic", "torch=default"],
-                    help="kernel settings: native, or numba=<cpu>, torch=<level>, openblas=<core>, mkl=<branch> "
-                    "joined by commas")
+                    help="kernel settings: native, or numba=<cpu>, torch=<level>, openblas=<core>, mkl=<branch>, "
+                    "numpy_off=<targets joined by +> joined by commas")
     ap.add_argument("--repeat", type=int, default=2, help="runs of each setting (default 2)")
     ap.add_argument("--override", nargs="*", default=[], help="Hydra overrides of the domain's config, e.g. "
                     "evaluation.identification.restarts=24")

@@ -274,6 +274,40 @@ def test_starts_fitted_in_worker_processes_equal_those_fitted_here(ctx, engine):
         torch.testing.assert_close(a.model.theta_scale, b.model.theta_scale, rtol=0, atol=0)
 
 
+def test_a_start_fits_alike_whatever_blas_threads_the_launching_process_has(ctx):
+    """scipy's L-BFGS-B rounds differently on two OpenBLAS threads than on one: a start fitted in the launching
+    process, where OpenBLAS takes every core by default, ended elsewhere than the same start in a worker
+    process, which joblib limits to its share of the cores (on dsub26 from the embedded dataset: 84.2857 %
+    against 84.2854). The fit runs on one BLAS thread wherever it runs."""
+    from threadpoolctl import threadpool_limits
+
+    context, test = ctx
+    settings = identification.IdentificationSettings(restarts=2, via_mse=False)
+    trials = [Profile(p.time, p.depth, p.force) for p in test.profiles]
+    fits = {}
+    for threads in (1, 2):
+        with threadpool_limits(limits=threads, user_api="blas"):
+            fits[threads] = identification.fit_jobs(identification.part_jobs(context, test.name, trials, settings), 1)
+    for (state_one, fit_one), (state_two, fit_two) in zip(fits[1], fits[2]):
+        assert fit_one == fit_two
+        for name in state_one:
+            torch.testing.assert_close(state_one[name], state_two[name], rtol=0, atol=0)
+
+
+def test_the_blas_libraries_run_on_the_threads_set_and_get_theirs_back():
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from pipe.threads import threads_set_to
+
+    def blas_threads() -> set[int]:
+        return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        with threads_set_to(1):
+            assert blas_threads() == {1}
+        assert blas_threads() == {2}
+
+
 class KillsItsWorker:
     """Unpickled in a worker process, it ends that process at once, as an out-of-memory kill would."""
 

@@ -142,21 +142,29 @@ def test_a_bad_params_file_is_named_and_nothing_is_written(tmp_path, capsys, con
 
 def test_the_machine_record_names_the_instruction_sets_the_kernels_are_told_to_use():
     """Two hosts of one CPU model name round differently when torch dispatches to other kernels, numba
-    compiles for another CPU or OpenBLAS picks other kernels (each moves an identification on one host): the
-    record follows all three, as the environment variables that set them say."""
+    compiles for another CPU or OpenBLAS picks other kernels (each moves an identification on one host), and
+    numpy's own SIMD loops may too: the record follows all four, as the environment variables that set them
+    say (every numpy dispatch target turned off leaves its baseline)."""
     import os
     import subprocess
     import sys
 
+    import numpy
+
+    simd = numpy.show_config(mode="dicts")["SIMD Extensions"]
+    targets = simd.get("found", []) + simd.get("not found", [])
     script = "from pipe.machine import machine_info; print(machine_info()['kernels'])"
-    variables = {"ATEN_CPU_CAPABILITY": "default", "NUMBA_CPU_NAME": "generic", "OPENBLAS_CORETYPE": "Sandybridge"}
+    variables = {"ATEN_CPU_CAPABILITY": "default", "NUMBA_CPU_NAME": "generic", "OPENBLAS_CORETYPE": "Sandybridge",
+                 "NPY_DISABLE_CPU_FEATURES": " ".join(targets)}
     lowered = subprocess.run([sys.executable, "-c", script], env={**os.environ, **variables}, capture_output=True,
                              text=True, timeout=120)
-    assert lowered.stdout == "torch DEFAULT, numba generic, openblas Sandybridge\n", lowered.stderr[-2000:]
+    assert lowered.stdout == (f"torch DEFAULT, numba generic, openblas Sandybridge, numpy {simd['baseline'][-1]}\n"), \
+        lowered.stderr[-2000:]
     env = {k: v for k, v in os.environ.items() if k not in variables}
     native = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
     assert native.stdout.startswith("torch ") and ", openblas " in native.stdout, native.stderr[-2000:]
     assert "numba generic" not in native.stdout and "Sandybridge" not in native.stdout, native.stdout
+    assert native.stdout.endswith(f", numpy {(simd.get('found') or simd['baseline'])[-1]}\n"), native.stdout
 
 
 def test_the_machine_record_names_this_cpu_and_the_installed_libraries():

@@ -24,12 +24,15 @@ def cpu_model() -> str:
 
 def cpu_kernels() -> str:
     """The instruction sets the numeric kernels run on here: torch's dispatch level (AVX2, AVX512, ...;
-    ATEN_CPU_CAPABILITY lowers it), the CPU numba compiles its loops for (NUMBA_CPU_NAME, else the host's) and
-    the kernels numpy's and scipy's OpenBLAS chose (Haswell, SkylakeX, ...; OPENBLAS_CORETYPE sets them). One
-    CPU model name can hide two of them: two "AMD EPYC" hosts, one with AVX-512, gave other figures from the
-    same code (2026-12-06), and each of the three moves an identification on one host (docs/experiments.md,
-    "The oracle under other kernels on one host" and "OpenBLAS's kernels, MKL's, and 96 starts")."""
+    ATEN_CPU_CAPABILITY lowers it), the CPU numba compiles its loops for (NUMBA_CPU_NAME, else the host's), the
+    kernels numpy's and scipy's OpenBLAS chose (Haswell, SkylakeX, ...; OPENBLAS_CORETYPE sets them) and numpy's
+    own highest SIMD dispatch target (X86_V3, X86_V4, ...; NPY_DISABLE_CPU_FEATURES turns targets off). One CPU
+    model name can hide two of them: two "AMD EPYC" hosts, one with AVX-512, gave other figures from the same
+    code (2026-12-06), and torch's, numba's and OpenBLAS's each move an identification on one host
+    (docs/experiments.md, "The oracle under other kernels on one host", "OpenBLAS's kernels, MKL's, and 96
+    starts" and "numpy's own SIMD dispatch")."""
     import numba
+    import numpy
     import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS beside numpy's, for threadpoolctl to find)
     import torch
     from llvmlite import binding
@@ -39,7 +42,9 @@ def cpu_kernels() -> str:
     openblas = sorted({lib["architecture"] for lib in threadpool_info()
                        if lib["internal_api"] == "openblas" and lib.get("architecture")})
     blas = f", openblas {'/'.join(openblas)}" if openblas else ""
-    return f"torch {torch.backends.cpu.get_cpu_capability()}, numba {compiled_for}{blas}"
+    simd = numpy.show_config(mode="dicts")["SIMD Extensions"]     # targets in rising order
+    dispatched = (simd.get("found") or simd["baseline"])[-1]
+    return f"torch {torch.backends.cpu.get_cpu_capability()}, numba {compiled_for}{blas}, numpy {dispatched}"
 
 
 def _version(name: str) -> str:

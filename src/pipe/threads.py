@@ -11,7 +11,11 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from typing import Any
+from functools import cache
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from threadpoolctl import ThreadpoolController
 
 
 def available_cores() -> int:
@@ -50,9 +54,23 @@ def set_threads(threads: int) -> None:
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
 
+@cache
+def blas_libraries() -> ThreadpoolController:
+    """numpy's and scipy's BLAS libraries, found once per process: threadpoolctl's search through the loaded
+    libraries takes about 9 ms, a limit set through the found ones 0.03 ms."""
+    import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS beside numpy's, for the search to find)
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
+
+
 @contextmanager
 def threads_set_to(threads: int) -> Iterator[None]:
-    """torch's and numba's threads at `threads` inside, restored after."""
+    """torch's, numba's and the BLAS libraries' threads (numpy's and scipy's OpenBLAS, through threadpoolctl) at
+    `threads` inside, restored after. BLAS's count moves a system identification's fits as much as the others':
+    left at OpenBLAS's default (every core) a start fitted in the launching process ended elsewhere than the same
+    start in a worker process, which joblib limits to its share of the cores (docs/experiments.md, "The BLAS
+    libraries' threads")."""
     import torch
 
     try:
@@ -63,7 +81,8 @@ def threads_set_to(threads: int) -> Iterator[None]:
     torch_threads = torch.get_num_threads()
     set_threads(threads)
     try:
-        yield
+        with blas_libraries().limit(limits=threads, user_api="blas"):
+            yield
     finally:
         torch.set_num_threads(torch_threads)
         if numba is not None:
