@@ -205,7 +205,7 @@ def identify(args: argparse.Namespace) -> None:
             paths.append({"start": number // (len(jobs) // args.starts), "via_mse": job.first is not None,
                           "objective": fit.objective, "evaluations": fit.evaluations, "fit_F": fit_F,
                           "scores": scores})
-        append_row(args.out, {"parts_of": args.domain or args.family, "seed": args.seed, "part": part.name,
+        append_row(args.out, {"parts_of": args.domain or f"{args.family} family", "seed": args.seed, "part": part.name,
                               "starts": args.starts, "budgets": list(BUDGETS), "paths": paths})
 
 
