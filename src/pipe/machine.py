@@ -28,8 +28,8 @@ def cpu_kernels() -> str:
     kernels numpy's and scipy's OpenBLAS chose (Haswell, SkylakeX, ...; OPENBLAS_CORETYPE sets them) and numpy's
     own highest SIMD dispatch target (X86_V3, X86_V4, ...; NPY_DISABLE_CPU_FEATURES turns targets off). One CPU
     model name can hide two of them: two "AMD EPYC" hosts, one with AVX-512, gave other figures from the same
-    code (2026-12-06), and torch's, numba's and OpenBLAS's each move an identification on one host
-    (docs/experiments.md, "The oracle under other kernels on one host", "OpenBLAS's kernels, MKL's, and 96
+    code (2026-12-06), and torch's, numba's and OpenBLAS's each move an identification on one host, numpy's did
+    not (docs/experiments.md, "The oracle under other kernels on one host", "OpenBLAS's kernels, MKL's, and 96
     starts" and "numpy's own SIMD dispatch")."""
     import numba
     import numpy
@@ -42,8 +42,8 @@ def cpu_kernels() -> str:
     openblas = sorted({lib["architecture"] for lib in threadpool_info()
                        if lib["internal_api"] == "openblas" and lib.get("architecture")})
     blas = f", openblas {'/'.join(openblas)}" if openblas else ""
-    simd = numpy.show_config(mode="dicts")["SIMD Extensions"]     # targets in rising order
-    dispatched = (simd.get("found") or simd["baseline"])[-1]
+    simd = numpy.show_config(mode="dicts").get("SIMD Extensions", {})     # targets in rising order
+    dispatched = (simd.get("found") or simd.get("baseline") or ["unknown"])[-1]
     return f"torch {torch.backends.cpu.get_cpu_capability()}, numba {compiled_for}{blas}, numpy {dispatched}"
 
 
