@@ -186,7 +186,6 @@ def identify(args: argparse.Namespace) -> None:
     if unknown:
         raise SystemExit(f"not a test part of {args.domain or args.family}: {', '.join(unknown)}; they are "
                          f"{', '.join(names)}")
-    key = f"identified_force_{configured.restarts}"     # where the oracle's scoring looks its fit up
     for part in [p for p in test if not args.parts or p.name in args.parts]:
         trials = [Profile(p.time, p.depth, p.force) for p in part.profiles]
         jobs = identification.part_jobs(ctx, part.name, trials, settings)
@@ -198,7 +197,7 @@ def identify(args: argparse.Namespace) -> None:
             job.head.eval().requires_grad_(False)
             fitted = identification.Identified(ctx.model.with_head(job.head, job.model.theta_scale), fit.loss,
                                                fit.evaluations, fit.converged)
-            scored = replace(ctx, cache={key: {part.name: fitted}})
+            scored = identification.with_fits(ctx, {part.name: fitted})
             with torch.no_grad():
                 fit_F = evaluate_methods(scored, [part], ["oracle"])["oracle"].per_part[part.name]["fit_F"]
             scores = [trace[-1].scores.get(budget, fit.objective) for budget in BUDGETS]

@@ -28,7 +28,7 @@ from summarise import domain_of, read_rows
 
 from pipe.data.preprocess import Profile
 from pipe.evaluation.evaluate import evaluate_methods
-from pipe.evaluation.identification import IdentificationSettings, Identified, fit_jobs, part_jobs
+from pipe.evaluation.identification import IdentificationSettings, Identified, fit_jobs, part_jobs, with_fits
 
 ORACLES = {"force": "oracle", "force_clean": "oracle_clean"}
 SAME = 1e-3     # objectives this close count as one basin (the stopping rule's tolerance is 1e-4 per check)
@@ -88,10 +88,9 @@ def main() -> None:
                     job.head.load_state_dict(state)
                     kept[name] = (Identified(ctx.model.with_head(job.head, job.model.theta_scale), fit.loss,
                                              fit.evaluations, fit.converged), fit.objective)
-                scored = replace(ctx, cache={f"identified_{target}_{k}": {name: fitted for name, (fitted, _) in
-                                                                          kept.items()}},
-                                 settings={**ctx.settings, "identification": {**ctx.settings["identification"],
-                                                                              "restarts": k}})
+                with_k = replace(ctx, settings={**ctx.settings, "identification": {
+                    **ctx.settings["identification"], "restarts": k}})
+                scored = with_fits(with_k, {name: fitted for name, (fitted, _) in kept.items()}, target)
                 result = evaluate_methods(scored, test, [ORACLES[target]])[ORACLES[target]]
                 append_row(args.out, {
                     "run": run, "target": target, "starts": k, "fit_F": result.domain["fit_F"],

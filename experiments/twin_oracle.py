@@ -53,7 +53,7 @@ from pipe.data.prepared import PartData, PreparedDomain, PreprocessSettings
 from pipe.data.preprocess import preprocess_trial
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import evaluate_methods
-from pipe.evaluation.identification import IdentificationSettings, identify
+from pipe.evaluation.identification import identify, with_fits
 from pipe.evaluation.metrics import force_metrics
 from pipe.model import ltv
 from pipe.pipeline import build_model, load_domain
@@ -224,7 +224,6 @@ def main() -> None:
     for seed in args.seeds:
         cfg = run_config(args.family, args.domain, seed)
         ctx = identification_context(cfg, data, test, seed, args.workers)
-        restarts = IdentificationSettings.from_config(ctx.settings["identification"]).restarts
         fits = {} if args.skip_own else {"own": None}
         for count in args.twins:
             fitted = identify(replace(ctx, cache={}), pooled(twins[:count]))
@@ -233,7 +232,7 @@ def main() -> None:
             fitted = identify(replace(ctx, cache={}), expected["fit"])
             fits[f"identified_expected_fit={args.expected}"] = {part.name: fit for part, fit in zip(test, fitted)}
         for name, fitted in fits.items():
-            scored = ctx if fitted is None else replace(ctx, cache={f"identified_force_{restarts}": fitted})
+            scored = ctx if fitted is None else with_fits(ctx, fitted)
             result = evaluate_methods(scored, test, ["oracle"])["oracle"]
             row = {"family": label, "seed": seed, "fit": name, "fit_F": result.domain["fit_F"],
                    "parts": {p: m["fit_F"] for p, m in result.per_part.items()}}

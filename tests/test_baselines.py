@@ -143,6 +143,24 @@ def test_the_oracle_fits_every_trial_alike_under_nmse(ctx, engine, loss, k):
     assert evaluate_methods(context, [mixed], ["oracle"])["oracle"].domain["fit_F"] == pytest.approx(expected, abs=0.1)
 
 
+def test_with_fits_has_the_oracle_score_given_fits_instead_of_its_own(ctx):
+    """A fit of part a (static gain 1, simulated by mds2 itself: fitted to within 1 %) handed to the oracle of
+    part t (gain 2, the same response doubled): a trial's FIT(F) is then 1 - |f|^2 / (4 |f - mean f|^2), for
+    the oracle and for oracle_clean alike; the context's own cache is left as it was."""
+    context, test = ctx
+    a = context.train[0]
+    fitted = identify(context, [a])[0]
+    cached = dict(context.cache)
+    f = a.profiles[0].force
+    expected = 100 * (1 - np.sum(f ** 2) / (4 * np.sum((f - f.mean()) ** 2)))
+    given = identification.with_fits(context, {"t": fitted})
+    assert evaluate_methods(given, [test], ["oracle"])["oracle"].domain["fit_F"] == pytest.approx(expected, abs=0.5)
+    clean = identification.with_fits(context, {"t": fitted}, "force_clean")
+    scored = evaluate_methods(clean, [test], ["oracle_clean"])["oracle_clean"].domain["fit_F"]
+    assert scored == pytest.approx(expected, abs=0.5)
+    assert context.cache == cached and given.cache is not context.cache
+
+
 def test_oracle_clean_is_left_out_without_a_noise_free_force(ctx):
     context, test = ctx
     test.profiles[:] = [Profile(p.time, p.depth, p.force) for p in test.profiles]

@@ -332,8 +332,19 @@ def _settings(ctx: EvalContext, restarts: int | None) -> IdentificationSettings:
     return settings if restarts is None else replace(settings, restarts=restarts)
 
 
+def _cache_key(target: str, restarts: int) -> str:
+    return f"identified_{target}_{restarts}"
+
+
 def _fits(ctx: EvalContext, target: str, settings: IdentificationSettings) -> dict[str, Identified]:
-    return ctx.cache.setdefault(f"identified_{target}_{settings.restarts}", {})
+    return ctx.cache.setdefault(_cache_key(target, settings.restarts), {})
+
+
+def with_fits(ctx: EvalContext, fits: dict[str, Identified], target: str = "force") -> EvalContext:
+    """The context with a fresh cache holding `fits` (by part name) as the identification of the trials'
+    `target` from the configured number of starts: the oracle (or oracle_clean) of that context scores them
+    instead of fitting its own. For fits made elsewhere (an experiment's own starts, twins, other data)."""
+    return replace(ctx, cache={_cache_key(target, _settings(ctx, None).restarts): fits})
 
 
 def _stored(ctx: EvalContext, part: PartData, trials: list[Profile], target: str,
