@@ -79,7 +79,8 @@ def test_a_relative_cache_folder_is_taken_from_the_project_root(tmp_path, monkey
     assert len(list((tmp_path / "runs" / "fits").glob("t-*.pt"))) == 1
 
 
-@pytest.mark.parametrize("change", ["trial", "seed", "settings", "target", "head", "dynamics", "kernels", "scipy"])
+@pytest.mark.parametrize("change", ["trial", "seed", "settings", "target", "head", "dynamics", "kernels", "libc",
+                                    "scipy"])
 def test_whatever_decides_a_fit_changes_its_key(change, monkeypatch):
     """Each thing that moves a fit moves its key: the machine's kernels and libraries too (another OpenBLAS
     kernel type alone moved conn's oracle by 0.71 points: docs/experiments.md, "OpenBLAS's kernels, MKL's, and
@@ -95,9 +96,11 @@ def test_whatever_decides_a_fit_changes_its_key(change, monkeypatch):
         settings["ridge"] = 0.2
     elif change == "target":
         target = "force_clean"
-    elif change in ("kernels", "scipy"):
+    elif change in ("kernels", "libc", "scipy"):
         machine = fit_cache.arithmetic()
-        other = {"kernels": machine["kernels"].replace("openblas ", "openblas not-"), "scipy": "0.0.0"}
+        assert change in machine
+        other = {"kernels": machine["kernels"].replace("openblas ", "openblas not-"), "libc": "glibc 0.0",
+                 "scipy": "0.0.0"}
         monkeypatch.setattr(fit_cache, "_arithmetic", lambda: {**machine, change: other[change]})
     elif change == "head":
         head = GaussianHead(32, 4, num_local_models=8)

@@ -180,3 +180,5 @@ def test_the_machine_record_names_this_cpu_and_the_installed_libraries():
     assert info["numpy"] == np.__version__ and info["cpus"].isdigit() and info["cpu"] not in ("", "unknown")
     assert info["scipy"] == scipy.__version__          # the identification's L-BFGS-B
     assert all(isinstance(value, str) for value in info.values())
+    if info["system"].rsplit("-with-", 1)[-1].startswith("glibc"):    # the libm the compiled loops call
+        assert info["libc"] == "glibc " + info["system"].rsplit("-with-glibc", 1)[1]

@@ -47,6 +47,13 @@ def cpu_kernels() -> str:
     return f"torch {torch.backends.cpu.get_cpu_capability()}, numba {compiled_for}{blas}, numpy {dispatched}"
 
 
+def libc() -> str:
+    """The C library (name and version) whose libm the compiled loops call for exp and log: two versions may
+    round a last bit otherwise."""
+    name, version = platform.libc_ver()
+    return f"{name} {version}" if name else "unknown"
+
+
 def _version(name: str) -> str:
     try:
         return metadata.version(name)
@@ -56,9 +63,9 @@ def _version(name: str) -> str:
 
 def arithmetic() -> dict[str, str]:
     """What can make the same code round differently on two machines, beside its inputs: the kernels'
-    instruction sets (`cpu_kernels`) and the numeric libraries' versions. A stored fit is reused only where
-    they are the same (`pipe.evaluation.fit_cache`)."""
-    return {"kernels": cpu_kernels(), **{name: _version(name) for name in LIBRARIES}}
+    instruction sets (`cpu_kernels`), the C library's version (`libc`) and the numeric libraries' versions. A
+    stored fit is reused only where they are the same (`pipe.evaluation.fit_cache`)."""
+    return {"kernels": cpu_kernels(), "libc": libc(), **{name: _version(name) for name in LIBRARIES}}
 
 
 def machine_info() -> dict[str, str]:

@@ -8,9 +8,9 @@ period, the head's and the dynamic model's settings (their plain attributes) and
 that computes a fit (the identification and its compiled objective, the simulator, every module of the head's
 and the dynamic model's plugin packages, their compiled kernels among them): a changed file or setting misses
 the cache. The key holds the machine's arithmetic too (`pipe.machine.arithmetic`: the kernels' instruction
-sets and the numeric libraries' versions), which moves a fit as much as a changed setting: a folder carried to
-another machine, or read with other kernels set, is fitted again. A fit is written to a temporary file and
-renamed into place, so runs in parallel never read half a file.
+sets, the C library's version and the numeric libraries' versions), which moves a fit as much as a changed
+setting: a folder carried to another machine, or read with other kernels set, is fitted again. A fit is
+written to a temporary file and renamed into place, so runs in parallel never read half a file.
 """
 
 from __future__ import annotations
