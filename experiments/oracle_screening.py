@@ -12,8 +12,11 @@ it. One JSON line per part. `--table` reads off, from those fits, the oracle of 
 k starts) and of each screened search (N starts, budget B, K continued): the oracle's FIT(F) over the parts,
 how many parts reach the best objective of all starts, and the evaluations it costs over the default 12
 starts'. Exact for a screened search that fits its continued paths again from their starts (the fits are
-deterministic), which is what the costs count; a path that ends within the budget is not fitted again.
-Results: docs/experiments.md, "A screened multistart for the oracle".
+deterministic), which is what the costs count; a path that ends within the budget is not fitted again. Rows
+record their `--override`s (an identification setting, say) and the table sets rows of other overrides apart,
+their costs over the default 12 starts' of the rows without overrides where the file holds those parts.
+Results: docs/experiments.md, "A screened multistart for the oracle" and "A stricter stopping rule for the
+oracle".
 Usage (one thread per process; parts split over processes with --parts):
   OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python experiments/oracle_screening.py OUT.jsonl --domain conn \
       --seed 0 --starts 96 [--parts usbb]
@@ -74,28 +77,34 @@ def screened(paths: list[FittedPath], budgets: list[int], starts: int, budget: i
 
 
 def table(rows: list[dict], continued: list[int]) -> str:
-    """Per part set (domain or family, seed): each search's oracle FIT(F) (mean over the parts), the parts at
-    the best objective of all starts, and its evaluations over the default 12 starts'."""
-    groups: dict[tuple[str, int], list[dict]] = defaultdict(list)
+    """Per part set (domain or family, seed, overrides): each search's oracle FIT(F) (mean over the parts), the
+    parts at the best objective of all its starts, and its evaluations over the default 12 starts' (those
+    without overrides where the rows hold them for the same parts, else the set's own)."""
+    groups: dict[tuple[str, int, tuple[str, ...]], list[dict]] = defaultdict(list)
     for row in rows:
-        groups[(row["parts_of"], row["seed"])].append(row)
+        groups[(row["parts_of"], row["seed"], tuple(row.get("overrides", ())))].append(row)
     lines = ["| parts (seed) | search | oracle FIT(F) | parts at the best objective | evaluations (x the default's) |",
              "| --- | --- | --- | --- | --- |"]
-    for (parts_of, seed), group in groups.items():
+    for (parts_of, seed, overrides), group in groups.items():
         starts = min(row["starts"] for row in group)
         budgets = group[0]["budgets"]
         if any(row["budgets"] != budgets for row in group):
             raise SystemExit(f"{parts_of} seed {seed}: rows of other budgets; keep one set of budgets per file")
         every = [paths_of(row) for row in group]
         best = [min(p.objective for p in paths) for paths in every]
-        base = sum(plain(paths, min(DEFAULT_STARTS, starts))[1] for paths in every)
+        default = {row["part"]: row for row in groups.get((parts_of, seed, ()), [])}
+        reference = [default[row["part"]] for row in group if row["part"] in default]
+        if len(reference) < len(group):         # no rows without overrides for these parts: the set's own
+            reference = group
+        most = min(DEFAULT_STARTS, min(row["starts"] for row in reference))
+        base = sum(plain(paths_of(row), most)[1] for row in reference)
         searches = {f"{k} starts": [plain(paths, k) for paths in every]
                     for k in (1, 6, 12, 24, 48, 96, starts) if k <= starts}
         for budget in budgets:
             for keep in continued:
                 searches[f"{starts} screened at {budget}, best {keep} continued"] = [
                     screened(paths, budgets, starts, budget, keep) for paths in every]
-        label = f"{parts_of}: {len(group)} parts (seed {seed})"
+        label = f"{parts_of}: {len(group)} parts (seed {seed}{', ' if overrides else ''}{' '.join(overrides)})"
         for name, found in searches.items():
             fit = statistics.fmean(kept.fit_F for kept, _ in found)
             at_best = sum(kept.objective <= b + SAME for (kept, _), b in zip(found, best))
@@ -205,7 +214,8 @@ def identify(args: argparse.Namespace) -> None:
                           "objective": fit.objective, "evaluations": fit.evaluations, "fit_F": fit_F,
                           "scores": scores})
         append_row(args.out, {"parts_of": args.domain or f"{args.family} family", "seed": args.seed, "part": part.name,
-                              "starts": args.starts, "budgets": list(BUDGETS), "paths": paths})
+                              "starts": args.starts, "budgets": list(BUDGETS), "overrides": args.override,
+                              "paths": paths})
 
 
 def main() -> None:

@@ -449,6 +449,26 @@ def test_oracle_screening_tables_read_each_search_and_where_the_best_basin_ranks
     assert ranks[2] == "| dsub (seed 0) | dsub26 | 1 of 3 | 1 | 3 | 3 |"
 
 
+def test_oracle_screening_sets_rows_of_other_overrides_apart_and_costs_them_over_the_defaults(tmp_path):
+    """The same part fitted again under an override (a stricter stopping rule, say: start 0 now ends in the
+    deepest basin after 40 evaluations): its searches are a set of their own, their costs over the default's
+    three starts (165 evaluations); a part the default rows lack is costed over its own."""
+    default = {"parts_of": "dsub", "seed": 0, "part": "dsub26", "starts": 3, "budgets": [10, 20],
+               "paths": screening_paths()}
+    stricter = {**default, "overrides": ["evaluation.identification.tolerance=1e-6"],
+                "paths": [{**screening_paths()[0], "objective": -3.5, "evaluations": 40, "fit_F": 92.0}]
+                + screening_paths()[1:]}
+    alone = {**stricter, "part": "other"}
+    printed = printed_table("oracle_screening.py", [default, stricter], tmp_path, "--table", "--continued", "1")
+    assert "| dsub: 1 parts (seed 0) | 3 starts | 90.00 | 1 of 1 | 1.00 |" in printed
+    label = "| dsub: 1 parts (seed 0, evaluation.identification.tolerance=1e-6) |"
+    assert f"{label} 1 starts | 92.00 | 1 of 1 | {40 / 165:.2f} |" in printed
+    assert f"{label} 3 starts | 92.00 | 1 of 1 | {190 / 165:.2f} |" in printed
+    printed = printed_table("oracle_screening.py", [default, alone], tmp_path, "--table", "--continued", "1")
+    assert "| dsub: 1 parts (seed 0, evaluation.identification.tolerance=1e-6) | 3 starts | 92.00 | 1 of 1 | 1.00 |" \
+        in printed
+
+
 def test_oracle_screening_refuses_a_run_without_parts_to_identify(tmp_path):
     done = run_here("oracle_screening.py", str(tmp_path / "rows.jsonl"), "--starts", "4")
     assert done.returncode == 1 and "give --domain (a paper domain) or --family" in done.stderr
