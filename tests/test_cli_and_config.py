@@ -156,6 +156,37 @@ def test_train_refuses_wrong_values_before_any_work(tmp_path):
     assert not any(path.suffix == ".ckpt" for path in run.rglob("*"))
 
 
+TRAIN_REFUSING = """\
+import runpy, sys
+sys.argv = ["train.py", *sys.argv[1:]]
+try:
+    runpy.run_path(sys.argv[0], run_name="__main__")
+finally:
+    print(sorted(m for m in ("torch", "lightning", "mlflow", "pipe.tracking", "pipe.pipeline") if m in sys.modules))
+"""
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("stages.vae.epochs=-1", "stages.vae.epochs takes a whole number, 1 or more, not -1"),
+    ("stages.vae.feature_dtype=float16", "stages.vae.feature_dtype takes one of float32, bfloat16, not 'float16'"),
+    ("stages.head.loss=mae", "stages.head.loss takes one of mse, nmse, not 'mae'"),
+    ("phase=fit", "phase takes one of all, train, evaluate, not 'fit'"),
+    ("evaluation.identification.engine=compild", "evaluation.identification.engine takes one of torch, compiled, "
+                                                  "not 'compild'"),
+    ("evaluation.identification.loss=rms", "evaluation.identification.loss takes one of mse, nmse, not 'rms'"),
+    ("seeds=[0]", "seeds= needs at least two different seeds for a spread"),
+    ("stages.vae.force_bins=0", "stages.vae.force_bins must be a whole number, 1 or more, not 0"),
+])
+def test_train_refuses_a_wrong_setting_before_torch_lightning_and_mlflow_load(tmp_path, setting, message):
+    """A typo costs a second, not the 10 to 15 s of those imports (nor a run in the MLflow store)."""
+    result = subprocess.run([sys.executable, "-c", TRAIN_REFUSING, setting, f"hydra.run.dir={tmp_path}"],
+                            capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert message in " ".join(result.stderr.split()) and "Traceback" not in result.stderr
+    assert result.stdout.strip() == "[]"
+    assert sorted(path.name for path in tmp_path.iterdir()) == [".hydra", "train.log"]   # Hydra's own records only
+
+
 def test_a_recorded_dataset_is_never_generated_and_its_missing_folder_is_named(tmp_path):
     from pipe.pipeline import ensure_dataset
 

@@ -14,7 +14,19 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from pipe.errors import PipeError
-from pipe.settings import POSITIVE, PREDICT_SETTINGS, TRAIN_SETTINGS, WHOLE_FROM_1, Takes, argument_type, check_settings
+from pipe.settings import (
+    ENGINES,
+    FEATURE_DTYPES,
+    LOSS_NAMES,
+    POSITIVE,
+    PREDICT_SETTINGS,
+    TRAIN_SETTINGS,
+    WHOLE_FROM_1,
+    OneOf,
+    Takes,
+    argument_type,
+    check_settings,
+)
 
 
 @pytest.mark.parametrize(("takes", "accepted", "refused"), [
@@ -38,6 +50,29 @@ def test_what_a_setting_takes_reads_as_its_message_says():
     assert str(Takes("number", least=0)) == "a number, 0 or more"
     assert str(Takes("number", above=1e-4)) == "a number, above 0.0001"
     assert str(Takes("flag")) == "true or false"
+
+
+def test_a_name_from_a_list_is_taken_as_written():
+    takes = OneOf(("mse", "nmse"))
+    assert takes.accepts("mse") and takes.accepts("nmse")
+    assert not any(takes.accepts(value) for value in ("MSE", "mse ", "", None, 0, True, ["mse"]))
+    assert str(takes) == "one of mse, nmse"
+
+
+def test_the_names_checked_first_are_those_the_reading_modules_know():
+    """pipe.settings holds copies, so that train.py checks them before torch loads; a name added to a module
+    and not to its copy would be refused by train.py, one removed would fail deep in a run."""
+    from pipe.evaluation import identification
+    from pipe.model.losses import FORCE_LOSSES
+    from pipe.training import stages
+
+    assert LOSS_NAMES == tuple(FORCE_LOSSES)
+    assert FEATURE_DTYPES == tuple(stages.FEATURE_DTYPES)
+    assert ENGINES == identification.ENGINES
+    assert {key: str(takes) for key, takes in TRAIN_SETTINGS.items() if isinstance(takes, OneOf)} == {
+        "phase": "one of all, train, evaluate", "stages.vae.feature_dtype": "one of float32, bfloat16",
+        "stages.head.loss": "one of mse, nmse", "evaluation.identification.engine": "one of torch, compiled",
+        "evaluation.identification.loss": "one of mse, nmse"}
 
 
 def test_a_number_option_reads_its_text_as_the_setting_takes_it():

@@ -27,18 +27,25 @@ register()   # installed plugins' configs join the search path, in editable inst
 
 @hydra.main(version_base="1.3", config_path=PIPE_CONFIG, config_name="config")
 def _train(cfg: DictConfig) -> float | None:
-    """One domain (or seeds) run; returns stage 2's best validation loss, a sweeper's objective."""
+    """One domain (or seeds) run; returns stage 2's best validation loss, a sweeper's objective. Its settings
+    are checked before torch, Lightning and MLflow load (seconds of imports), so a wrong one is refused at once."""
     from rich.table import Table
 
     from pipe.cli import console, fail, say
     from pipe.errors import PipeError, debugging
+
+    try:
+        job_config(cfg)
+    except PipeError as err:
+        if debugging():
+            raise
+        sys.exit(fail(str(err)))
     from pipe.pipeline import PublishedRun, TrainedRun, results_rows, run_domain, run_seeds, spread_rows
     from pipe.tracking import stop_on_signals, stopping_signal
 
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # device banners and tips, twice
     stop_on_signals()
     try:
-        job_config(cfg)
         result = run_seeds(cfg) if cfg.seeds is not None else run_domain(cfg)
     except PipeError as err:
         if debugging():
@@ -116,14 +123,16 @@ def force_choices(choices: dict[int | None, dict]) -> str:
 
 def job_config(cfg: DictConfig) -> None:
     """Complete the composed config in place: the run's folder (Hydra's, of this job), and with `params=`
-    the values of that parameter file (pipe.params); check its values (pipe.settings), then set the job's
-    threads (pipe.threads)."""
+    the values of that parameter file (pipe.params); check its values (pipe.settings, the seeds and stage 1's
+    force term), then set the job's threads (pipe.threads)."""
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import open_dict
 
+    from pipe.evaluation.spread import check_seeds
     from pipe.params import apply_params
     from pipe.settings import TRAIN_SETTINGS, check_settings
     from pipe.threads import available_cores, job_threads, set_threads
+    from pipe.training.force_choice import force_setting
 
     hydra_cfg = HydraConfig.get()
     with open_dict(cfg):
@@ -132,6 +141,9 @@ def job_config(cfg: DictConfig) -> None:
         groups = {name.split("/")[0] for name in hydra_cfg.runtime.choices if not name.startswith("hydra")}
         apply_params(cfg, Path(cfg.paths.root) / cfg.params, groups, list(hydra_cfg.overrides.task))
     check_settings(cfg, TRAIN_SETTINGS, "python train.py data=recorded data.dir=data/mylab domain.name=mylab ...")
+    if cfg.seeds is not None:
+        check_seeds(cfg.seeds)
+    force_setting(cfg)
     threads = job_threads(cfg.threads, hydra_cfg.launcher, available_cores())
     if threads is not None:
         set_threads(threads)

@@ -36,7 +36,13 @@ from pipe.data.slices import SLICE_SIZE
 from pipe.data.spec import SPEC_FILE
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
-from pipe.evaluation.evaluate import MethodResult, calibrated_band_offset, evaluate_methods, reconstruction_metrics
+from pipe.evaluation.evaluate import (
+    MethodResult,
+    calibrated_band_offset,
+    check_evaluation_settings,
+    evaluate_methods,
+    reconstruction_metrics,
+)
 from pipe.evaluation.report import spread_markdown, write_report
 from pipe.evaluation.spread import Spread, check_seeds, summarise, verdict
 from pipe.files import write_text_atomically
@@ -49,6 +55,7 @@ from pipe.model.sections import SECTION_SIZE, SectionCode
 from pipe.model.slices import SliceCode
 from pipe.model.uncertainty import BandSettings
 from pipe.model.vae import PointCloudVAE
+from pipe.settings import PHASES
 from pipe.synthetic import generate_dataset, generated_part_names
 from pipe.tracking import (
     StageLogger,
@@ -61,12 +68,13 @@ from pipe.tracking import (
     parent_run,
     tracked_run,
 )
-from pipe.training.fit import check_varying_force, fit_head, fit_vae, force_setting, head_loss, weight_differences
+from pipe.training.fit import check_varying_force, fit_head, fit_vae, head_loss, weight_differences
 from pipe.training.force_choice import (
     CANDIDATES_GLOB,
     candidate_dir,
     check_resumed_layout,
     choose_weight,
+    force_setting,
     holds_training,
     weight_config,
 )
@@ -77,7 +85,6 @@ METRICS = ("fit_F", "fit_dF", "rms", "rms_rel")
 RUN_ID_FILE = "mlflow_run_id"   # in a run's folder: its MLflow run, which resume= continues
 TRAINING_FILE = "training.json"  # in a trained run's folder: each stage's wall time, stage 2's best loss and
                                  #   the force weight it chose (pipe.training.force_choice)
-PHASES = ("all", "train", "evaluate")
 STAGES = ("vae", "head")
 MODEL_SETTINGS = ("encoder", "head", "model", "code", "data.points", "data.cloud_seed", "data.rate_hz",
                   "data.steady_samples", "data.align_final_depth")   # check_same_settings compares these
@@ -368,6 +375,7 @@ def run_domain(cfg: DictConfig) -> RunResult | TrainedRun | PublishedRun:
     phase = check_phase(cfg)
     loss = head_loss(cfg)               # an unknown stage-2 loss fails now, not after stage 1
     weights, _ = force_setting(cfg)     # so does a wrong stage-1 force term
+    check_evaluation_settings(cfg.evaluation)   # and a wrong setting of the evaluation
     resume = cfg.resume is not None
     trained_dir = Path(cfg.resume or cfg.paths.output_dir)       # the checkpoints' folder
     run_dir = Path(cfg.paths.output_dir) if phase == "evaluate" else trained_dir   # where this run writes

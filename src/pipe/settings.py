@@ -4,9 +4,13 @@ Hydra composes `seed=abc`, `stages.vae.epochs=-1` or `code.slices=ture` as given
 a run with a traceback from deep inside it, the second trains for ever (Lightning reads max_epochs=-1 as no
 limit) and the third turns the slices on (a non-empty string is true). `check_settings` refuses a config
 with every wrong value named in one message, before any data is read or generated and before any training;
-a setting the config lacks (a plugin's own config) is not checked. Settings with a vocabulary of their own
-(phase, seeds, the force weights, the head's loss, the mesh's axis and unit) are checked where they are
-read. The `pipe` command's number options take the same vocabulary (`argument_type`).
+a setting the config lacks (a plugin's own config) is not checked. Names from a list (`OneOf`: the phase, the
+losses, stage 1's feature dtype, the identification's engine) are checked here too, against copies of the
+names that the modules reading them define (tests/test_settings.py keeps the two equal), so that train.py
+refuses a typo before torch and Lightning load; those modules check again for callers that compose a config
+themselves. Settings of other shapes are checked where they are read, and train.py calls those checks before
+its imports too where they are light (seeds=, stage 1's force term). The `pipe` command's number options take
+the same vocabulary (`argument_type`).
 """
 
 from __future__ import annotations
@@ -66,6 +70,19 @@ class Takes:
         return f"{text}, or null" if self.optional else text
 
 
+@dataclass(frozen=True)
+class OneOf:
+    """What a setting takes: one of these names."""
+
+    names: tuple[str, ...]
+
+    def accepts(self, value: Any) -> bool:
+        return isinstance(value, str) and value in self.names
+
+    def __str__(self) -> str:
+        return f"one of {', '.join(self.names)}"
+
+
 def _shown(bound: float) -> str:
     """A bound as written: 4294967295, not 4.29497e+09."""
     return str(int(bound)) if float(bound).is_integer() else f"{bound:g}"
@@ -78,8 +95,14 @@ NOT_NEGATIVE = Takes("number", least=0)
 FLAG = Takes("flag")
 SEED = Takes("whole", least=0, most=2**32 - 1)   # numpy's seeds, which Lightning's seed_everything sets too
 
-TRAIN_SETTINGS: Mapping[str, Takes] = {
+PHASES = ("all", "train", "evaluate")      # train.py's phase= (pipe.pipeline)
+LOSS_NAMES = ("mse", "nmse")               # pipe.model.losses.FORCE_LOSSES: stage 2's and the identification's
+FEATURE_DTYPES = ("float32", "bfloat16")   # pipe.training.stages.FEATURE_DTYPES
+ENGINES = ("torch", "compiled")            # pipe.evaluation.identification.ENGINES
+
+TRAIN_SETTINGS: Mapping[str, Takes | OneOf] = {
     "seed": SEED,
+    "phase": OneOf(PHASES),
     "threads": Takes("whole", least=1, optional=True),
     "data.points": WHOLE_FROM_1,
     "data.cloud_seed": SEED,
@@ -92,9 +115,11 @@ TRAIN_SETTINGS: Mapping[str, Takes] = {
     "stages.vae.batch_size": WHOLE_FROM_1,
     "stages.vae.lr": POSITIVE,
     "stages.vae.kl_weight": NOT_NEGATIVE,
+    "stages.vae.feature_dtype": OneOf(FEATURE_DTYPES),
     "stages.head.epochs": WHOLE_FROM_1,
     "stages.head.batch_size": WHOLE_FROM_1,
     "stages.head.lr": POSITIVE,
+    "stages.head.loss": OneOf(LOSS_NAMES),
     "code.sections": FLAG,
     "code.slices": FLAG,
     "evaluation.identification.restarts": WHOLE_FROM_1,
@@ -106,6 +131,8 @@ TRAIN_SETTINGS: Mapping[str, Takes] = {
     "evaluation.identification.workers": Takes("whole", least=1, optional=True),
     "evaluation.identification.via_mse": FLAG,
     "evaluation.identification.neutral_jitter": NOT_NEGATIVE,
+    "evaluation.identification.engine": OneOf(ENGINES),
+    "evaluation.identification.loss": OneOf(LOSS_NAMES),
     "evaluation.blackbox_steps": WHOLE_FROM_1,
     "evaluation.blackbox_clip": FLAG,
     "evaluation.band.level": Takes("number", above=0, below=1),
@@ -114,7 +141,7 @@ TRAIN_SETTINGS: Mapping[str, Takes] = {
     "mlflow.enabled": FLAG,
 }
 
-PREDICT_SETTINGS: Mapping[str, Takes] = {
+PREDICT_SETTINGS: Mapping[str, Takes | OneOf] = {
     "ramp.depth_mm": Takes("number", above=0, optional=True),
     "ramp.speed_mm_s": POSITIVE,
     "ramp.rest_s": NOT_NEGATIVE,
@@ -122,7 +149,7 @@ PREDICT_SETTINGS: Mapping[str, Takes] = {
 }
 
 
-def check_settings(cfg: DictConfig, settings: Mapping[str, Takes], example: str) -> None:
+def check_settings(cfg: DictConfig, settings: Mapping[str, Takes | OneOf], example: str) -> None:
     """Raise a PipeError naming every required value not given (`???` in the config; `example`, a command that
     gives them, is shown where it names them all) and every setting of `settings` whose value it does not take."""
     if missing := sorted(OmegaConf.missing_keys(cfg)):

@@ -21,10 +21,9 @@ import mlflow
 import mlflow.pytorch
 import torch
 import yaml
-from hydra.experimental.callback import Callback
 from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities import rank_zero_only
-from mlflow.entities import Metric, Param
+from mlflow.entities import Metric
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
@@ -261,25 +260,6 @@ def parent_run(cfg: DictConfig, run_name: str, tags: dict[str, str], run_id: str
         close_parent_run(run_id, enclosing, failed=True)
         raise
     close_parent_run(run_id, enclosing)
-
-
-class MLflowSweepCallback(Callback):
-    """Hydra callback: a multirun gets a parent MLflow run; each job's run becomes its child."""
-
-    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self.run_id, self.enclosing = open_parent_run(
-            config, f"sweep {config.hydra.sweep.dir.rsplit('/', 1)[-1]}", {"sweep_dir": str(config.hydra.sweep.dir)})
-
-    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        results = Path(config.hydra.sweep.dir) / "optimization_results.yaml"   # a search's best trial (optuna)
-        if results.is_file():
-            best = yaml.safe_load(results.read_text()) or {}
-            if "best_params" in best:
-                MlflowClient().log_batch(self.run_id, params=[Param(f"best/{k}", str(v))
-                                                              for k, v in best["best_params"].items()],
-                                         metrics=[Metric("best_objective", float(best["best_value"]),
-                                                         int(time.time() * 1000), 0)])
-        close_parent_run(self.run_id, self.enclosing)
 
 
 def log_run_metrics(run_id: str, metrics: dict[str, float]) -> None:

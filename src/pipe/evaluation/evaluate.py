@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -13,11 +14,11 @@ from pipe.data.batches import stack_clouds
 from pipe.data.prepared import PartData
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
-from pipe.evaluation.identification import identify_all
+from pipe.evaluation.identification import IdentificationSettings, identify_all
 from pipe.evaluation.methods import METHODS, Method
 from pipe.evaluation.metrics import force_metrics, mean_metrics, rms
 from pipe.model.chamfer import chamfer, mean_nearest_distance
-from pipe.model.uncertainty import ForceBands, band_metrics
+from pipe.model.uncertainty import BandSettings, ForceBands, band_metrics
 from pipe.model.vae import PointCloudVAE
 
 log = logging.getLogger(__name__)
@@ -57,12 +58,24 @@ def score(method: Method, ctx: EvalContext, part: PartData, forces: list[np.ndar
     return mean_metrics([{k: r[k] for k in sorted(keys)} for r in rows]) | method.diagnostics(ctx, part)
 
 
+def check_method_names(names: Iterable[str]) -> None:
+    """Refuse a name that is not one of `METHODS`."""
+    if unknown := [n for n in names if n not in METHODS]:
+        raise PipeError(f"unknown method(s) {unknown} in evaluation.baselines; available: {list(METHODS)}")
+
+
+def check_evaluation_settings(settings: Mapping[str, Any]) -> None:
+    """Refuse what the evaluation would refuse once it starts, after both stages: an unknown baseline, an unknown
+    or wrong option of the identification or of the band (`settings`: the config's `evaluation`)."""
+    check_method_names(settings.get("baselines") or [])
+    IdentificationSettings.from_config(settings.get("identification"))
+    BandSettings.from_config(settings.get("band"))
+
+
 def available_methods(ctx: EvalContext, test: list[PartData], names: list[str]) -> dict[str, Method]:
     """The named methods (see `METHODS`) that can run on the test parts; the others (`Method.unavailable`)
     are left out with a logged reason."""
-    unknown = [n for n in names if n not in METHODS]
-    if unknown:
-        raise PipeError(f"unknown method(s) {unknown} in evaluation.baselines; available: {list(METHODS)}")
+    check_method_names(names)
     methods = {}
     for name in names:
         method = METHODS[name]()

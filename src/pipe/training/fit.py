@@ -23,7 +23,7 @@ from pipe.errors import PipeError
 from pipe.model.pipe_model import PIPEModel
 from pipe.model.vae import PointCloudVAE
 from pipe.training.codes_source import CodesSource, resumable_head, stage_one_source
-from pipe.training.force_choice import force_weights
+from pipe.training.force_choice import force_setting
 from pipe.training.force_signature import force_signatures
 from pipe.training.random_state import RandomState
 from pipe.training.stages import HeadStage, VAEStage, check_head_loss
@@ -128,16 +128,6 @@ def fit_vae(cfg: DictConfig, encoder: PointCloudVAE, train: list[PartData], val:
     batch = per_process_batch(stage.batch_size, trainer)
     return fit_stage(trainer, module, cloud_loader(train, batch, True, cfg.seed),
                      cloud_loader(val, batch, False, cfg.seed) if val else None, run_dir, "vae", resume)
-
-
-def force_setting(cfg: DictConfig) -> tuple[list[float], int]:
-    """The configured stage-1 force term, checked: its weight, or the candidates a run chooses from
-    (pipe.training.force_choice; 0: no term), and its signatures' depth bins."""
-    bins = cfg.stages.vae.get("force_bins", 16)
-    weights = force_weights(cfg)
-    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
-        raise PipeError(f"stages.vae.force_bins must be a whole number, 1 or more, not {bins!r}")
-    return weights, bins
 
 
 def head_loss(cfg: DictConfig) -> str:

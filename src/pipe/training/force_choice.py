@@ -35,6 +35,16 @@ def force_weights(cfg: DictConfig) -> list[float]:
     return [float(weight) for weight in weights]
 
 
+def force_setting(cfg: DictConfig) -> tuple[list[float], int]:
+    """The configured stage-1 force term, checked: its weight, or the candidates a run chooses from
+    (`force_weights`; 0: no term), and its signatures' depth bins."""
+    bins = cfg.stages.vae.get("force_bins", 16)
+    weights = force_weights(cfg)
+    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
+        raise PipeError(f"stages.vae.force_bins must be a whole number, 1 or more, not {bins!r}")
+    return weights, bins
+
+
 def weight_config(cfg: DictConfig, weight: float) -> DictConfig:
     """The run's config with stage 1's force weight set to this one weight."""
     single = copy.deepcopy(cfg)
