@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
@@ -20,6 +22,25 @@ from pipe.synthetic import generate_dataset  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL_MESHES = Path(os.environ.get("PIPE_REAL_MESHES", ROOT.parent / "shared" / "real-meshes"))
+
+
+HEAVY_MODULES = ("torch", "lightning", "mlflow", "pipe.tracking", "pipe.pipeline", "pipe.predict")
+_NOTING_IMPORTS = """\
+import runpy, sys
+sys.argv = sys.argv[1:]
+try:
+    runpy.run_path(sys.argv[0], run_name="__main__")
+finally:
+    print(sorted(m for m in {modules} if m in sys.modules))
+"""
+
+
+def run_noting_imports(script: str, *args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    """Run train.py or predict.py (`script`, from the repository root) in a fresh interpreter; the last line of
+    its stdout lists which of `HEAVY_MODULES` it loaded (seconds of imports a refusal should not wait for)."""
+    code = _NOTING_IMPORTS.format(modules=HEAVY_MODULES)
+    return subprocess.run([sys.executable, "-c", code, str(ROOT / script), *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=300)
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_noting_imports
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
@@ -156,16 +157,6 @@ def test_train_refuses_wrong_values_before_any_work(tmp_path):
     assert not any(path.suffix == ".ckpt" for path in run.rglob("*"))
 
 
-TRAIN_REFUSING = """\
-import runpy, sys
-sys.argv = ["train.py", *sys.argv[1:]]
-try:
-    runpy.run_path(sys.argv[0], run_name="__main__")
-finally:
-    print(sorted(m for m in ("torch", "lightning", "mlflow", "pipe.tracking", "pipe.pipeline") if m in sys.modules))
-"""
-
-
 @pytest.mark.parametrize("setting, message", [
     ("stages.vae.epochs=-1", "stages.vae.epochs takes a whole number, 1 or more, not -1"),
     ("stages.vae.feature_dtype=float16", "stages.vae.feature_dtype takes one of float32, bfloat16, not 'float16'"),
@@ -179,8 +170,7 @@ finally:
 ])
 def test_train_refuses_a_wrong_setting_before_torch_lightning_and_mlflow_load(tmp_path, setting, message):
     """A typo costs a second, not the 10 to 15 s of those imports (nor a run in the MLflow store)."""
-    result = subprocess.run([sys.executable, "-c", TRAIN_REFUSING, setting, f"hydra.run.dir={tmp_path}"],
-                            capture_output=True, text=True, cwd=ROOT, timeout=120)
+    result = run_noting_imports("train.py", setting, f"hydra.run.dir={tmp_path}")
     assert result.returncode == 2, result.stderr[-2000:]
     assert message in " ".join(result.stderr.split()) and "Traceback" not in result.stderr
     assert result.stdout.strip() == "[]"

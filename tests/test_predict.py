@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from conftest import ROOT
+from conftest import ROOT, run_noting_imports
 
 
 def run_predict(*args: str) -> subprocess.CompletedProcess:
@@ -24,9 +24,11 @@ def test_predict_names_what_it_must_be_given_and_a_wrong_ramp_before_reading_the
     missing = run_predict("mesh=part.stl", f"hydra.run.dir={tmp_path / 'a'}")
     assert missing.returncode == 2 and "Traceback" not in missing.stderr
     assert "error: run= must be given, e.g. python predict.py mesh=part.stl run=" in missing.stderr
-    ramp = run_predict("mesh=part.stl", "run=no-such-run", "ramp.speed_mm_s=0", f"hydra.run.dir={tmp_path / 'b'}")
+    ramp = run_noting_imports("predict.py", "mesh=part.stl", "run=no-such-run", "ramp.speed_mm_s=0",
+                              f"hydra.run.dir={tmp_path / 'b'}", cwd=tmp_path)
     assert ramp.returncode == 2 and "Traceback" not in ramp.stderr
     assert "error: ramp.speed_mm_s takes a number, above 0, not 0" in ramp.stderr
+    assert ramp.stdout.strip() == "[]"      # refused before torch and MLflow load
 
 
 @pytest.mark.slow

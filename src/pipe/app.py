@@ -151,16 +151,18 @@ def job_config(cfg: DictConfig) -> None:
 
 @hydra.main(version_base="1.3", config_path=PIPE_CONFIG, config_name="predict")
 def _predict(cfg: DictConfig) -> None:
+    """New parts' Theta(p_z) and force; the settings checked before torch and MLflow load."""
     from hydra.core.hydra_config import HydraConfig
 
     from pipe.cli import console, fail
     from pipe.errors import PipeError, debugging
-    from pipe.predict import predict, write_predictions
     from pipe.settings import PREDICT_SETTINGS, check_settings
 
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")   # a model of a few MB; set true to see it
     try:
         check_settings(cfg, PREDICT_SETTINGS, "python predict.py mesh=part.stl run=<the run id train.py printed>")
+        from pipe.predict import predict, write_predictions
+
         predictions = predict(cfg)
     except PipeError as err:
         if debugging():
