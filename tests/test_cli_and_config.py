@@ -135,6 +135,8 @@ def test_train_runs_a_paper_domain_from_any_directory(tmp_path):
     result = run_train("domain=pins", "experiment=smoke", f"data.dir={data}", f"hydra.run.dir={tmp_path / 'run'}")
     assert result.returncode == 0, result.stderr
     assert "taper8" in result.stdout and "dowel6" in result.stdout and "domain mean" in result.stdout
+    assert "GPU available" not in result.stdout + result.stderr   # Lightning's banners silenced, whichever of its
+                                                                  # packages (lightning, pytorch_lightning) logs them
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["machine"]["numpy"]   # the run's machine
 
 

@@ -43,7 +43,9 @@ def _train(cfg: DictConfig) -> float | None:
     from pipe.pipeline import PublishedRun, TrainedRun, results_rows, run_domain, run_seeds, spread_rows
     from pipe.tracking import stop_on_signals, stopping_signal
 
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # device banners and tips, twice
+    for name in ("lightning.pytorch", "pytorch_lightning"):   # device banners and tips, twice: Lightning logs them
+        logging.getLogger(name).setLevel(logging.WARNING)    # under the name of whichever of its two packages
+                                                             # loaded last (mlflow.pytorch loads pytorch_lightning)
     stop_on_signals()
     try:
         result = run_seeds(cfg) if cfg.seeds is not None else run_domain(cfg)
