@@ -11,6 +11,8 @@ import logging
 import os
 import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,21 +27,31 @@ if TYPE_CHECKING:
 register()   # installed plugins' configs join the search path, in editable installs too
 
 
+@contextmanager
+def user_errors_end_the_command() -> Iterator[None]:
+    """A PipeError (an error the user can cause) ends the command with its message and a non-zero exit, no
+    traceback unless PIPE_DEBUG is set."""
+    from pipe.cli import fail
+    from pipe.errors import PipeError, debugging
+
+    try:
+        yield
+    except PipeError as err:
+        if debugging():
+            raise
+        sys.exit(fail(str(err)))
+
+
 @hydra.main(version_base="1.3", config_path=PIPE_CONFIG, config_name="config")
 def _train(cfg: DictConfig) -> float | None:
     """One domain (or seeds) run; returns stage 2's best validation loss, a sweeper's objective. Its settings
     are checked before torch, Lightning and MLflow load (seconds of imports), so a wrong one is refused at once."""
     from rich.table import Table
 
-    from pipe.cli import console, fail, say
-    from pipe.errors import PipeError, debugging
+    from pipe.cli import console, say
 
-    try:
+    with user_errors_end_the_command():
         job_config(cfg)
-    except PipeError as err:
-        if debugging():
-            raise
-        sys.exit(fail(str(err)))
     from pipe.pipeline import PublishedRun, TrainedRun, results_rows, run_domain, run_seeds, spread_rows
     from pipe.tracking import stop_on_signals, stopping_signal
 
@@ -48,11 +60,8 @@ def _train(cfg: DictConfig) -> float | None:
                                                              # loaded last (mlflow.pytorch loads pytorch_lightning)
     stop_on_signals()
     try:
-        result = run_seeds(cfg) if cfg.seeds is not None else run_domain(cfg)
-    except PipeError as err:
-        if debugging():
-            raise
-        sys.exit(fail(str(err)))
+        with user_errors_end_the_command():
+            result = run_seeds(cfg) if cfg.seeds is not None else run_domain(cfg)
     except (KeyboardInterrupt, SystemExit):   # Lightning ends a fit stopped by a signal with SystemExit
         signum = stopping_signal()
         if signum is None:
@@ -156,20 +165,15 @@ def _predict(cfg: DictConfig) -> None:
     """New parts' Theta(p_z) and force; the settings checked before torch and MLflow load."""
     from hydra.core.hydra_config import HydraConfig
 
-    from pipe.cli import console, fail
-    from pipe.errors import PipeError, debugging
+    from pipe.cli import console
     from pipe.settings import PREDICT_SETTINGS, check_settings
 
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")   # a model of a few MB; set true to see it
-    try:
+    with user_errors_end_the_command():
         check_settings(cfg, PREDICT_SETTINGS, "python predict.py mesh=part.stl run=<the run id train.py printed>")
         from pipe.predict import predict, write_predictions
 
         predictions = predict(cfg)
-    except PipeError as err:
-        if debugging():
-            raise
-        sys.exit(fail(str(err)))
     out = Path(HydraConfig.get().runtime.output_dir)
     write_predictions(predictions, out, str(cfg.run))
     several = len(predictions) > 1
