@@ -236,16 +236,16 @@ def test_stiff_positive_parameters_stay_bounded(backend, a0, dtype):
     assert force.abs().max() <= 24.0 * (1 + 1e-5)
 
 
-def test_auto_uses_the_compiled_kernels_on_cpu_from_a_size_on(monkeypatch):
+def test_auto_compiles_a_single_short_trajectory(monkeypatch):
+    """Regression: a size threshold (2000 samples) sent the evaluation's predictions, one trial of a few hundred
+    samples at a time, to the torch loop: about 26 s of conn's evaluation."""
     calls = []
     compiled = ltv._compiled()
     monkeypatch.setattr(compiled.CompiledSimulate2, "apply", lambda a, b, u, dt: calls.append(u.shape) or
                         ltv.recurrence_torch(*ltv.discretize_torch(a, b, dt), u))
     monkeypatch.setattr(ltv, "_backend", "auto")
-    monkeypatch.setattr(ltv, "AUTO_COMPILED_MIN_STEPS", 20)
-    ltv.simulate(*mds2_system(1, 19), 1e-3)     # below the size: the torch loop
-    ltv.simulate(*mds2_system(2, 10), 1e-3)
-    assert calls == [(2, 10)]
+    ltv.simulate(*mds2_system(1, 19), 1e-3)
+    assert calls == [(1, 19)]
 
 
 def test_auto_falls_back_to_torch_without_numba(monkeypatch):
@@ -308,10 +308,10 @@ def test_auto_sends_a_training_batch_on_any_device_to_the_compiled_kernels(monke
     monkeypatch.setattr(ltv, "_backend", "auto")
     on_meta = [torch.empty(10, 400, 2, 2, device="meta"), torch.empty(10, 400, 2, device="meta"),
                torch.empty(10, 400, device="meta")]
-    assert ltv._use_compiled(4000, *on_meta) == ltv.compiled_available()
-    assert not ltv._use_compiled(4000, on_meta[0], torch.empty(10, 400, 2))     # two devices: the torch loop
+    assert ltv._use_compiled(*on_meta) == ltv.compiled_available()
+    assert not ltv._use_compiled(on_meta[0], torch.empty(10, 400, 2))     # two devices: the torch loop
     monkeypatch.setattr(ltv, "_backend", "torch")
-    assert not ltv._use_compiled(4000, *on_meta)
+    assert not ltv._use_compiled(*on_meta)
 
 
 def test_auto_compiles_a_training_batch(monkeypatch):

@@ -10,12 +10,14 @@ Two implementations give the same numbers (tests/test_simulator.py):
   and tensors on another device (a GPU) are copied to it and the results back, autograd carrying the
   gradients across the copies;
 - "torch": `torch.linalg.matrix_exp` and a Python loop over time; on the tensors' own device, the reference.
-The backend is "auto" by default: compiled for tensors of at least AUTO_COMPILED_MIN_STEPS steps in all
-when numba imports, torch otherwise (a single trajectory of up to 20 s at 100 Hz, as predict.py simulates,
-takes the loop a few ms, less than loading the compiled kernels, about 1 s once per process; a training
-batch of 10 trials is always above it). On a GPU the loop launches a few small kernels per time step, forward
-and backward: with it, stage 2 of conn took 263 s on an H200 against 12 s on two CPU cores (BENCHMARKS.md),
-so CUDA tensors take the compiled kernels too. Choose one with `set_backend`, the `PIPE_SIMULATOR`
+The backend is "auto" by default: compiled wherever numba imports, whatever the size, torch otherwise. A size
+threshold once kept small work on the loop, so that predict.py would not load the kernels for one trajectory
+(0.6 s, once per process); it sent stage 2's batches, a distributed fit's half batches and then the
+evaluation's trial-by-trial predictions to the loop (about 26 s of conn's evaluation), which takes about
+30 ms for one trial of 487 samples on two cores where the kernels take 0.05 ms (BENCHMARKS.md, "The
+simulator in the evaluation"). On a GPU the loop launches a few small kernels per time step, forward and
+backward: with it, stage 2 of conn took 263 s on an H200 against 12 s on two CPU cores (BENCHMARKS.md), so
+CUDA tensors take the compiled kernels too. Choose one with `set_backend`, the `PIPE_SIMULATOR`
 environment variable or train.py's `simulator=` option.
 """
 
@@ -33,7 +35,6 @@ from pipe.errors import PipeError
 
 BACKENDS = ("auto", "compiled", "torch")
 _COMPILED_DTYPES = (torch.float32, torch.float64)
-AUTO_COMPILED_MIN_STEPS = 2_000    # batch x steps from which "auto" takes the compiled kernels
 _backend = "auto"
 
 
@@ -66,16 +67,12 @@ def _compiled() -> ModuleType | None:
     return ltv_numba
 
 
-def _use_compiled(steps: int, *tensors: torch.Tensor) -> bool:
-    """Compiled for float32/float64 tensors on one device unless "torch" is chosen ("auto": from
-    AUTO_COMPILED_MIN_STEPS steps)."""
+def _use_compiled(*tensors: torch.Tensor) -> bool:
+    """Compiled for float32/float64 tensors of one dtype on one device unless "torch" is chosen or numba is
+    missing."""
     if _backend == "torch" or any(t.dtype not in _COMPILED_DTYPES for t in tensors):
         return False
-    if len({t.device for t in tensors}) != 1:
-        return False
-    if _backend == "auto" and steps < AUTO_COMPILED_MIN_STEPS:
-        return False
-    if len({t.dtype for t in tensors}) != 1:
+    if len({t.device for t in tensors}) != 1 or len({t.dtype for t in tensors}) != 1:
         return False
     return _compiled() is not None
 
@@ -91,7 +88,7 @@ def _on_the_cpu(function: Callable[..., Any], *tensors: torch.Tensor, dt: float 
 
 def discretize(a: torch.Tensor, b: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
     """A (..., n, n), B (..., n) -> Phi = exp(A dt) (..., n, n), Gamma = int_0^dt exp(A s) ds B (..., n)."""
-    if _use_compiled(b[..., 0].numel(), a, b):
+    if _use_compiled(a, b):
         return _on_the_cpu(_compiled().CompiledDiscretize.apply, a, b, dt=dt)
     return discretize_torch(a, b, dt)
 
@@ -109,7 +106,7 @@ def discretize_torch(a: torch.Tensor, b: torch.Tensor, dt: float) -> tuple[torch
 def recurrence(phi: torch.Tensor, gamma: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """States (B, T + 1, n) of x_{k+1} = Phi_k x_k + Gamma_k u_k from x_0 = 0; Phi (B, T, n, n),
     Gamma (B, T, n), u (B, T)."""
-    if _use_compiled(u.numel(), phi, gamma, u):
+    if _use_compiled(phi, gamma, u):
         return _on_the_cpu(_compiled().CompiledRecurrence.apply, phi, gamma, u)
     return recurrence_torch(phi, gamma, u)
 
@@ -134,7 +131,7 @@ def simulate(a: torch.Tensor, b: torch.Tensor, u: torch.Tensor, dt: float) -> to
     """States (B, T, n) from zero initial state; A (B, T-1, n, n) and B (B, T-1, n) act over each period
     and u (B, T-1) is the input over it."""
     two_states = a.shape == (*u.shape, 2, 2) and b.shape == (*u.shape, 2)     # and nothing broadcast
-    if two_states and _use_compiled(u.numel(), a, b, u):
+    if two_states and _use_compiled(a, b, u):
         return _on_the_cpu(_compiled().CompiledSimulate2.apply, a, b, u, dt=dt)  # both steps in one kernel
     phi, gamma = discretize(a, b, dt)
     return recurrence(phi, gamma, u)

@@ -89,18 +89,14 @@ class EndState(Callback):
 
 
 class SimulatorChoice(Callback):
-    """The run's simulator (`simulator=`) in the processes a distributed fit starts, which import pipe afresh.
-    There "auto" takes the compiled kernels wherever they load: a process's share of a batch can fall below
-    auto's size threshold, which is meant for a single trajectory (predict.py), and the torch loop made a
-    DDP epoch of 100 pins 4x slower than one process's."""
+    """The run's simulator (`simulator=`) in the processes a distributed fit starts, which import pipe afresh
+    and would otherwise take the `PIPE_SIMULATOR` environment variable's choice or "auto"."""
 
     def __init__(self, simulator: str) -> None:
         self.simulator = simulator
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        distributed = trainer.world_size > 1
-        auto_compiled = self.simulator == "auto" and distributed and ltv.compiled_available()
-        ltv.set_backend("compiled" if auto_compiled else self.simulator)
+        ltv.set_backend(self.simulator)
 
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")
