@@ -134,11 +134,14 @@ def force_choices(choices: dict[int | None, dict]) -> str:
 
 def job_config(cfg: DictConfig) -> None:
     """Complete the composed config in place: the run's folder (Hydra's, of this job), and with `params=`
-    the values of that parameter file (pipe.params); check its values (pipe.settings, the seeds and stage 1's
-    force term), then set the job's threads (pipe.threads)."""
+    the values of that parameter file (pipe.params); check its values (pipe.settings, the seeds, stage 1's
+    force term, and that the dataset serves the domain: pipe.dataset_check), then set the job's threads
+    (pipe.threads)."""
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import open_dict
 
+    from pipe.data.domain import domain_from_config
+    from pipe.dataset_check import check_dataset
     from pipe.evaluation.spread import check_seeds
     from pipe.params import apply_params
     from pipe.settings import TRAIN_SETTINGS, check_settings
@@ -155,6 +158,7 @@ def job_config(cfg: DictConfig) -> None:
     if cfg.seeds is not None:
         check_seeds(cfg.seeds)
     force_setting(cfg)
+    check_dataset(cfg.data, Path(cfg.paths.root), domain_from_config(cfg.domain))
     threads = job_threads(cfg.threads, hydra_cfg.launcher, available_cores())
     if threads is not None:
         set_threads(threads)

@@ -14,7 +14,7 @@ import copy
 import json
 import logging
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -30,10 +30,10 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pipe.data.alignment import align_final_depth
 from pipe.data.batches import stack_clouds, stack_geometry, stack_slices
-from pipe.data.domain import domain_from_config
+from pipe.data.domain import Domain, domain_from_config
 from pipe.data.prepared import PartData, PreparedDomain, data_scales, prepare_domain
 from pipe.data.slices import SLICE_SIZE
-from pipe.data.spec import SPEC_FILE
+from pipe.dataset_check import check_dataset, dataset_folder
 from pipe.errors import PipeError
 from pipe.evaluation.context import EvalContext
 from pipe.evaluation.evaluate import (
@@ -56,7 +56,7 @@ from pipe.model.slices import SliceCode
 from pipe.model.uncertainty import BandSettings
 from pipe.model.vae import PointCloudVAE
 from pipe.settings import PHASES
-from pipe.synthetic import generate_dataset, generated_part_names
+from pipe.synthetic import generate_dataset
 from pipe.tracking import (
     StageLogger,
     dvc_dataset_tags,
@@ -179,34 +179,18 @@ class SeedsResult:
         return summarise([{"reconstruction": m} for m in per_seed])["reconstruction"]
 
 
-def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path, parts: Sequence[str] = ()) -> Path:
-    """The dataset folder (a relative `dir` from the project root); a synthetic one (the catalogue, or `count`
-    parts of a `family`) is generated first when it is missing, a recorded one (`generate` null) is refused.
-    Nothing is generated when the synthetic dataset would lack any of the domain's `parts`: a recorded
-    dataset's folder mistyped under the default `data=synthetic` is named instead of filled."""
-    root = project_root / data_cfg["dir"]
-    if not (root / SPEC_FILE).is_file():
-        problem = f"no {SPEC_FILE} in this folder" if root.is_dir() else "no such folder"
-        generate = data_cfg.get("generate")
-        if generate is None:
-            raise PipeError(f"{problem}; point data.dir at a dataset folder (`pipe data import` writes one)", root)
+def ensure_dataset(data_cfg: Mapping[str, Any], project_root: Path, domain: Domain | None = None) -> Path:
+    """The dataset folder (a relative `dir` from the project root), checked to serve `domain`
+    (`pipe.dataset_check`); a synthetic one (the catalogue, or `count` parts of a `family`) is generated
+    first when it is missing."""
+    root = dataset_folder(data_cfg, project_root)
+    if check_dataset(data_cfg, project_root, domain):
+        generate = data_cfg["generate"]
         family = str(generate["family"]) if generate.get("family") else None
-        if family and generate.get("count") is None:
-            raise PipeError(f"data.generate.family={family} needs data.generate.count, the number of parts to "
-                            "generate: start from data=family (e.g. data=family data.generate.family=rect)")
-        count = int(generate["count"]) if family else 0
-        what = f"the {count} {family} parts" if family else "the synthetic dataset"
-        generated = set(generated_part_names(family, count))
-        missing = [part for part in parts if part not in generated]
-        if missing:
-            shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
-            hint = ("a larger data.generate.count generates more of them" if family else
-                    "for recordings of your own give data=recorded and data.dir their dataset folder")
-            raise PipeError(f"{problem}: {what} would be generated here without the domain's part(s) {shown}; "
-                            f"{hint}", root)
-        log.info("generating %s into %s (seed %s)", what, root, generate["seed"])
+        log.info("generating %s into %s (seed %s)", f"the {generate['count']} {family} parts" if family
+                 else "the synthetic dataset", root, generate["seed"])
         if family:
-            generate_dataset(root, seed=int(generate["seed"]), family=family, count=count)
+            generate_dataset(root, seed=int(generate["seed"]), family=family, count=int(generate["count"]))
         else:
             generate_dataset(root, seed=int(generate["seed"]))
     return root
@@ -218,8 +202,8 @@ def load_domain(cfg: DictConfig) -> PreparedDomain:
     final depth (pipe.data.alignment)."""
     root = Path(cfg.paths.root)
     prepared = root / cfg.data.prepared if cfg.data.get("prepared") else None
-    needed = domain_from_config(cfg.domain).parts
-    domain = prepare_domain(ensure_dataset(cfg.data, root, needed), cfg.data, cfg.domain, prepared)
+    domain = prepare_domain(ensure_dataset(cfg.data, root, domain_from_config(cfg.domain)), cfg.data, cfg.domain,
+                            prepared)
     if not cfg.data.get("align_final_depth", False):
         return domain
     return replace(domain, splits={split: [align_final_depth(part) for part in parts]
