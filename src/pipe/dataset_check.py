@@ -30,8 +30,7 @@ def check_dataset(data_cfg: Mapping[str, Any], project_root: Path, domain: Domai
     root = dataset_folder(data_cfg, project_root)
     if (root / SPEC_FILE).is_file():
         if domain is not None:
-            parts = root / "parts"
-            require_parts(domain, [p.name for p in parts.iterdir() if p.is_dir()] if parts.is_dir() else [], root)
+            require_parts(domain, root)
         return False
     problem = f"no {SPEC_FILE} in this folder" if root.is_dir() else "no such folder"
     generate = data_cfg.get("generate")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -72,9 +72,12 @@ def domain_from_config(cfg: Mapping[str, Any]) -> Domain:
     return Domain(name, **splits)
 
 
-def require_parts(domain: Domain, available: Iterable[str], dataset_root: str | Path) -> None:
-    """Fail clearly when the domain names parts the dataset does not have."""
-    missing = sorted(set(domain.parts) - set(available))
+def require_parts(domain: Domain, dataset_root: str | Path) -> None:
+    """Fail clearly when the domain names parts the dataset at `dataset_root` does not have (its `parts/`
+    folders)."""
+    folder = Path(dataset_root) / "parts"
+    available = {p.name for p in folder.iterdir() if p.is_dir()} if folder.is_dir() else set()
+    missing = sorted(set(domain.parts) - available)
     if missing:
         raise PipeError(f"domain {domain.name!r} needs part(s) {missing} that the dataset does not have",
                         dataset_root)

@@ -72,8 +72,7 @@ def prepare_domain(root: str | Path, data_cfg: Mapping[str, Any], domain_cfg: Ma
     domain = domain_from_config(domain_cfg)
     root = Path(root)
     spec = load_spec(root)
-    available = [p.name for p in (root / "parts").iterdir() if p.is_dir()] if (root / "parts").is_dir() else []
-    require_parts(domain, available, root)
+    require_parts(domain, root)
     settings = PreprocessSettings.from_config(data_cfg)
     version = dataset_version(root)
     if prepared is not None:
