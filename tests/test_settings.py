@@ -17,6 +17,7 @@ from pipe.errors import PipeError
 from pipe.settings import (
     ENGINES,
     FEATURE_DTYPES,
+    KERNELS,
     LOSS_NAMES,
     POSITIVE,
     PREDICT_SETTINGS,
@@ -62,6 +63,7 @@ def test_a_name_from_a_list_is_taken_as_written():
 def test_the_names_checked_first_are_those_the_reading_modules_know():
     """pipe.settings holds copies, so that train.py checks them before torch loads; a name added to a module
     and not to its copy would be refused by train.py, one removed would fail deep in a run."""
+    from pipe import kernels
     from pipe.evaluation import identification
     from pipe.model.losses import FORCE_LOSSES
     from pipe.training import stages
@@ -69,9 +71,11 @@ def test_the_names_checked_first_are_those_the_reading_modules_know():
     assert LOSS_NAMES == tuple(FORCE_LOSSES)
     assert FEATURE_DTYPES == tuple(stages.FEATURE_DTYPES)
     assert ENGINES == identification.ENGINES
+    assert KERNELS == kernels.CHOICES
     assert {key: str(takes) for key, takes in TRAIN_SETTINGS.items() if isinstance(takes, OneOf)} == {
-        "phase": "one of all, train, evaluate", "stages.vae.feature_dtype": "one of float32, bfloat16",
-        "stages.head.loss": "one of mse, nmse", "evaluation.identification.engine": "one of torch, compiled",
+        "phase": "one of all, train, evaluate", "kernels": "one of auto, avx2, native",
+        "stages.vae.feature_dtype": "one of float32, bfloat16", "stages.head.loss": "one of mse, nmse",
+        "evaluation.identification.engine": "one of torch, compiled",
         "evaluation.identification.loss": "one of mse, nmse"}
 
 

@@ -20,6 +20,7 @@ import hydra
 from omegaconf import DictConfig
 
 from hydra_plugins.pipe_searchpath import PIPE_CONFIG, register
+from pipe.kernels import set_from_arguments
 
 if TYPE_CHECKING:
     from pipe.pipeline import PublishedRun
@@ -134,15 +135,14 @@ def force_choices(choices: dict[int | None, dict]) -> str:
 
 def job_config(cfg: DictConfig) -> None:
     """Complete the composed config in place: the run's folder (Hydra's, of this job), and with `params=`
-    the values of that parameter file (pipe.params); check its values (pipe.settings, the seeds, stage 1's
-    force term, and that the dataset serves the domain: pipe.dataset_check), then set the job's threads
-    (pipe.threads)."""
+    the values of that parameter file (pipe.params); check its values (pipe.settings), set the numeric
+    libraries' kernels before numpy loads (pipe.kernels), check the seeds, stage 1's force term and that the
+    dataset serves the domain (pipe.dataset_check), then set the job's threads (pipe.threads)."""
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import open_dict
 
-    from pipe.data.domain import domain_from_config
-    from pipe.dataset_check import check_dataset
     from pipe.evaluation.spread import check_seeds
+    from pipe.kernels import use_kernels
     from pipe.params import apply_params
     from pipe.settings import TRAIN_SETTINGS, check_settings
     from pipe.threads import available_cores, job_threads, set_threads
@@ -155,6 +155,10 @@ def job_config(cfg: DictConfig) -> None:
         groups = {name.split("/")[0] for name in hydra_cfg.runtime.choices if not name.startswith("hydra")}
         apply_params(cfg, Path(cfg.paths.root) / cfg.params, groups, list(hydra_cfg.overrides.task))
     check_settings(cfg, TRAIN_SETTINGS, "python train.py data=recorded data.dir=data/mylab domain.name=mylab ...")
+    use_kernels(cfg.kernels)
+    from pipe.data.domain import domain_from_config  # numpy's first import in a single run
+    from pipe.dataset_check import check_dataset
+
     if cfg.seeds is not None:
         check_seeds(cfg.seeds)
     force_setting(cfg)
@@ -170,11 +174,13 @@ def _predict(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     from pipe.cli import console
+    from pipe.kernels import use_kernels
     from pipe.settings import PREDICT_SETTINGS, check_settings
 
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")   # a model of a few MB; set true to see it
     with user_errors_end_the_command():
         check_settings(cfg, PREDICT_SETTINGS, "python predict.py mesh=part.stl run=<the run id train.py printed>")
+        use_kernels(cfg.kernels)
         from pipe.predict import predict, write_predictions
 
         predictions = predict(cfg)
@@ -199,10 +205,12 @@ def _predict(cfg: DictConfig) -> None:
 def train() -> None:
     """Train PIPE on one domain (see conf/config.yaml), e.g. `encoder=pointnet model=mds2 domain=conn`."""
     os.environ.setdefault("PROJECT_ROOT", os.getcwd())
+    set_from_arguments(sys.argv[1:])
     _train()
 
 
 def predict() -> None:
     """Predict a new part's Theta(p_z) and force (see conf/predict.yaml): `mesh=part.stl run=<run id>`."""
     os.environ.setdefault("PROJECT_ROOT", os.getcwd())
+    set_from_arguments(sys.argv[1:])
     _predict()

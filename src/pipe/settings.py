@@ -99,10 +99,12 @@ PHASES = ("all", "train", "evaluate")      # train.py's phase= (pipe.pipeline)
 LOSS_NAMES = ("mse", "nmse")               # pipe.model.losses.FORCE_LOSSES: stage 2's and the identification's
 FEATURE_DTYPES = ("float32", "bfloat16")   # pipe.training.stages.FEATURE_DTYPES
 ENGINES = ("torch", "compiled")            # pipe.evaluation.identification.ENGINES
+KERNELS = ("auto", "avx2", "native")       # pipe.kernels.CHOICES: train.py's and predict.py's kernels=
 
 TRAIN_SETTINGS: Mapping[str, Takes | OneOf] = {
     "seed": SEED,
     "phase": OneOf(PHASES),
+    "kernels": OneOf(KERNELS),
     "threads": Takes("whole", least=1, optional=True),
     "data.points": WHOLE_FROM_1,
     "data.cloud_seed": SEED,
@@ -142,6 +144,7 @@ TRAIN_SETTINGS: Mapping[str, Takes | OneOf] = {
 }
 
 PREDICT_SETTINGS: Mapping[str, Takes | OneOf] = {
+    "kernels": OneOf(KERNELS),
     "ramp.depth_mm": Takes("number", above=0, optional=True),
     "ramp.speed_mm_s": POSITIVE,
     "ramp.rest_s": NOT_NEGATIVE,
