@@ -69,23 +69,20 @@ def identify_here(domain: str, seed: int, overrides: list[str]) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    """Per domain (with its overrides), seed and setting: the kernels, and the oracle's FIT(F) [%] with each
-    part's FIT(F) and identification loss [N^2], one line per distinct result of the repeats (a setting that
-    repeats itself shows one)."""
-    results: dict[tuple[str, int, str], list[tuple[str, str]]] = defaultdict(list)
-    kernels = {}
+    """Per domain (with its overrides), seed, setting and the kernels it ran on (a setting such as `native`
+    runs other kernels on another host): the oracle's FIT(F) [%] with each part's FIT(F) and identification
+    loss [N^2], one line per distinct result of the repeats (a setting that repeats itself shows one)."""
+    results: dict[tuple[str, int, str, str], list[tuple[str, str]]] = defaultdict(list)
     for row in rows:
-        key = (" ".join([row["domain"], *row.get("overrides", [])]), row["seed"], row["setting"])
-        kernels[key] = row["kernels"]
+        key = (" ".join([row["domain"], *row.get("overrides", [])]), row["seed"], row["setting"], row["kernels"])
         parts = "; ".join(f"{name} {part['fit_F']:.4f} ({part['id_loss']:.6g})" for name, part in row["parts"].items())
         if (result := (f"{row['fit_F']:.4f}", parts)) not in results[key]:
             results[key].append(result)
     lines = ["| domain | seed | setting | kernels | repeats alike | oracle FIT(F) | per part: FIT(F) (loss) |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
-    for (domain, seed, setting), seen in results.items():
+    for (domain, seed, setting, kernels), seen in results.items():
         alike = "yes" if len(seen) == 1 else f"no ({len(seen)} results)"
-        lines += [f"| {domain} | {seed} | {setting} | {kernels[(domain, seed, setting)]} | {alike} | {fit} | {parts} |"
-                  for fit, parts in seen]
+        lines += [f"| {domain} | {seed} | {setting} | {kernels} | {alike} | {fit} | {parts} |" for fit, parts in seen]
     return "\n".join(lines)
 
 

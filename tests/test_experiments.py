@@ -1827,7 +1827,7 @@ def test_gpr_cv_pairs_pipes_folds_with_gprs_seed_by_seed(tmp_path):
 
 def test_kernel_choice_table_shows_one_line_per_distinct_result_of_a_settings_repeats(tmp_path):
     """Two repeats alike give one line and `yes`; two that differ give a line each and `no (2 results)`; runs
-    with overrides are their own group."""
+    with overrides are their own group, and so are runs of one setting on other kernels (another host)."""
     def row(setting, kernels, fit, loss, overrides=()):
         return {"domain": "dsub", "seed": 0, "overrides": list(overrides), "setting": setting, "kernels": kernels,
                 "fit_F": fit, "parts": {"dsub26": {"fit_F": fit, "id_loss": loss, "id_evals": 100.0}}}
@@ -1835,13 +1835,15 @@ def test_kernel_choice_table_shows_one_line_per_distinct_result_of_a_settings_re
     native, generic = "torch AVX2, numba znver3", "torch AVX2, numba generic"
     rows = [row("native", native, 89.87905, 3.8177321), row("native", native, 89.87905, 3.8177321),
             row("numba=generic", generic, 88.5, 4.25), row("numba=generic", generic, 87.25, 4.5),
-            row("native", native, 80.0, 9.0, ["evaluation.identification.restarts=1"])]
+            row("native", native, 80.0, 9.0, ["evaluation.identification.restarts=1"]),
+            row("native", "torch AVX512, numba znver5", 88.0, 4.0)]
     lines = printed_table("kernel_choice.py", rows, tmp_path, "--table").splitlines()
     assert lines[2:] == [
         f"| dsub | 0 | native | {native} | yes | 89.8791 | dsub26 89.8791 (3.81773) |",
         f"| dsub | 0 | numba=generic | {generic} | no (2 results) | 88.5000 | dsub26 88.5000 (4.25) |",
         f"| dsub | 0 | numba=generic | {generic} | no (2 results) | 87.2500 | dsub26 87.2500 (4.5) |",
-        f"| dsub evaluation.identification.restarts=1 | 0 | native | {native} | yes | 80.0000 | dsub26 80.0000 (9) |"]
+        f"| dsub evaluation.identification.restarts=1 | 0 | native | {native} | yes | 80.0000 | dsub26 80.0000 (9) |",
+        "| dsub | 0 | native | torch AVX512, numba znver5 | yes | 88.0000 | dsub26 88.0000 (4) |"]
 
 
 def test_kernel_choice_refuses_an_unknown_setting_before_any_work(tmp_path):

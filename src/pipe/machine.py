@@ -1,6 +1,7 @@
-"""What machine a run ran on: results reproduce to the digit on one machine, not across machines (the same
-code rounds differently on another CPU or library build), so every run records its CPU, the instruction sets
-its numeric kernels run on, and the library versions."""
+"""What machine a run ran on: results reproduce to the digit where the numeric kernels' instruction sets and the
+library builds are alike, not across others (the same code rounds differently on them; `pipe.kernels` sets
+every x86-64 host with AVX2 to the same kernels), so every run records its CPU, the instruction sets its
+numeric kernels run on, and the library versions."""
 
 from __future__ import annotations
 

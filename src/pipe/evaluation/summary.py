@@ -90,7 +90,8 @@ def write_summary(runs: Path, out: Path, domains: list[str] | None = None) -> li
                       "|" + " --- |" * (6 + len(COLUMNS)), *rows, "",
                       "PIPE vs it: `better` or `worse` only when the means differ by more than the two standard "
                       "deviations added; `tie` otherwise.", "",
-                      "Machines (results reproduce to the digit on one machine, not across machines):", *machines, "",
+                      "Machines (results reproduce to the digit where the kernels and the libraries read alike; "
+                      "`kernels=auto` sets every x86-64 host with AVX2 to the same kernels):", *machines, "",
                       *tables])
     written = [out / "metrics.json", out / "results.md"]
     out.mkdir(parents=True, exist_ok=True)
