@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 from pipe.cli import main
 from pipe.data.domain import Domain, domain_from_config
 from pipe.errors import PipeError
+from pipe.kernels import has_avx2
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -137,7 +138,10 @@ def test_train_runs_a_paper_domain_from_any_directory(tmp_path):
     assert "taper8" in result.stdout and "dowel6" in result.stdout and "domain mean" in result.stdout
     assert "GPU available" not in result.stdout + result.stderr   # Lightning's banners silenced, whichever of its
                                                                   # packages (lightning, pytorch_lightning) logs them
-    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["machine"]["numpy"]   # the run's machine
+    machine = json.loads((tmp_path / "run" / "metrics.json").read_text())["machine"]   # the run's machine
+    assert machine["numpy"]
+    if has_avx2():      # kernels=auto: every library at the AVX2 level
+        assert machine["kernels"] == "torch AVX2, numba haswell, openblas Haswell, numpy X86_V3"
 
 
 def test_train_names_missing_parts_and_exits_nonzero_before_torch_loads(small_dataset, tmp_path):
