@@ -1854,12 +1854,17 @@ def test_kernel_choice_refuses_an_unknown_setting_before_any_work(tmp_path):
 
 
 @pytest.mark.slow
-def test_kernel_choice_runs_each_setting_in_a_process_with_its_kernels(tmp_path):
+def test_kernel_choice_runs_each_setting_in_a_process_with_its_kernels(tmp_path, monkeypatch):
     """dsub's oracle from one start: the native run repeats itself to the digit, and each row records the
     kernels its process ran on (numba compiled for `generic` and OpenBLAS on Sandybridge's kernels where the
-    setting asks for them)."""
-    from pipe.machine import cpu_kernels
+    setting asks for them; `native` as a process without the switches reads them, which may not be this
+    one's: a host's environment can set OPENBLAS_CORETYPE for every process)."""
+    monkeypatch.syspath_prepend(str(EXPERIMENTS))
+    from kernel_choice import VARIABLES
 
+    native_kernels = subprocess.run(
+        [sys.executable, "-c", "from pipe.machine import cpu_kernels; print(cpu_kernels())"], capture_output=True,
+        text=True, env={k: v for k, v in os.environ.items() if k not in VARIABLES.values()}, timeout=120).stdout.strip()
     rows_file = tmp_path / "rows.jsonl"
     overrides = ["evaluation.identification.restarts=1", f"data.dir={tmp_path / 'data'}"]
     lowered = "numba=generic,openblas=Sandybridge"
@@ -1868,6 +1873,6 @@ def test_kernel_choice_runs_each_setting_in_a_process_with_its_kernels(tmp_path)
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
     assert [(row["setting"], row["repeat"]) for row in rows] == [("native", 0), (lowered, 0), ("native", 1),
                                                                   (lowered, 1)]
-    assert rows[0]["kernels"] == cpu_kernels() and "numba generic, openblas Sandybridge" in rows[1]["kernels"]
+    assert rows[0]["kernels"] == native_kernels and "numba generic, openblas Sandybridge" in rows[1]["kernels"]
     assert rows[0]["parts"] == rows[2]["parts"] and list(rows[0]["parts"]) == ["dsub26"]
     assert 0 < rows[0]["fit_F"] < 100 and rows[0]["overrides"] == overrides
