@@ -93,13 +93,18 @@ def test_libraries_loaded_at_another_level_are_refused():
 
 
 @needs_avx2
-def test_an_environment_that_sets_a_switch_otherwise_is_refused(clean_environment, monkeypatch):
+def test_an_environment_that_sets_a_switch_otherwise_is_refused_or_under_auto_followed(clean_environment,
+                                                                                       monkeypatch, caplog):
     monkeypatch.setenv("OPENBLAS_CORETYPE", "SkylakeX")
     with pytest.raises(PipeError, match="kernels=avx2 sets the AVX2 level, but the environment sets "
                                         "OPENBLAS_CORETYPE=SkylakeX: unset them, or use kernels=native"):
         kernels.use_kernels("avx2")
-    kernels.set_from_arguments([])                       # auto: left to use_kernels, which refuses it
+    kernels.set_from_arguments([])                       # auto: nothing set over the environment's choice
     assert os.environ["OPENBLAS_CORETYPE"] == "SkylakeX" and "ATEN_CPU_CAPABILITY" not in os.environ
+    assert kernels.use_kernels("auto") == "native"
+    assert "kernels=auto: the environment sets OPENBLAS_CORETYPE=SkylakeX, so the libraries run on their own " \
+        "choice (kernels=native)" in caplog.text
+    assert "ATEN_CPU_CAPABILITY" not in os.environ
 
 
 @needs_avx2

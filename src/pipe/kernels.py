@@ -18,6 +18,7 @@ than record figures under a level they were not computed at. A caller of the API
 
 from __future__ import annotations
 
+import logging
 import os
 import platform
 import sys
@@ -43,6 +44,7 @@ AVX2_ENVIRONMENT = {
     "ONEDNN_MAX_CPU_ISA": "AVX2",        # the same for torch's oneDNN (mkldnn)
 }
 _NEEDED_FLAGS = ("avx2", "fma")
+log = logging.getLogger(__name__)
 _pinned: str | None = None    # "avx2" once this module set the switches in this process
 
 
@@ -137,7 +139,8 @@ def set_from_arguments(arguments: list[str]) -> None:
 def use_kernels(choice: str) -> str:
     """Set the numeric libraries' kernels for this process and the processes it starts; returns the level
     (`avx2` or `native`). Call it before torch, numba and numpy load: a library loaded before at another level
-    is refused, as is an environment that sets one of the switches otherwise."""
+    is refused, as is an environment that sets one of the switches otherwise (under `auto` that environment's
+    choice is taken, with a warning)."""
     global _pinned
     level = resolve(choice)
     if level == "native":
@@ -147,6 +150,10 @@ def use_kernels(choice: str) -> str:
                             "on the command line, in a command of its own")
         return level
     if clashes := _clashes():
+        if choice == "auto":     # the environment chose: its figures are recorded under the kernels they ran on
+            log.warning("kernels=auto: the environment sets %s, so the libraries run on their own choice "
+                        "(kernels=native); unset it for the AVX2 level", ", ".join(clashes))
+            return "native"
         raise PipeError(f"kernels={choice} sets the AVX2 level, but the environment sets {', '.join(clashes)}: "
                         "unset them, or use kernels=native to run on the environment's choice")
     if mismatches := loaded_mismatches():
