@@ -1,8 +1,9 @@
 """Wall time of train.py's stages with the numeric libraries at the AVX2 level (`kernels=avx2`, what the default
 `auto` takes where the CPU has AVX2 and FMA) and at each library's own choice for this CPU (`kernels=native`),
 with their figures: each run in a process of its own (the libraries choose their kernels when they load), the
-two levels alternately, `--repeats` times each. On a host without AVX-512 the two levels run the same kernels
-but for numba's CPU name. Run it alone: a second torch process on 2 cores distorts it.
+two levels alternately, `--repeats` times each. On a host without AVX-512 the two levels differ less (numba's
+CPU name, and OpenBLAS's kernels where its own choice is not Haswell's). Run it alone: a second torch process on
+2 cores distorts it.
 
     python benchmarks/kernels.py [--repeats 2] [train.py overrides, e.g. stages.vae.epochs=100]
 """
