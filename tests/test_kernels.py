@@ -19,10 +19,16 @@ AVX2_RECORD = "torch AVX2, numba haswell, openblas Haswell, numpy X86_V3"   # pi
 
 @pytest.fixture
 def clean_environment(monkeypatch):
-    """No switch of the AVX2 level in the environment and none set by this process; both restored after."""
+    """No switch of the AVX2 level in the environment and none set by this process; both restored after, the
+    environment whole (monkeypatch.delenv does not restore a variable that was absent and then set, and a
+    switch left set would run this worker's later subprocesses at the AVX2 level)."""
+    saved = dict(os.environ)
     for name in kernels.AVX2_ENVIRONMENT:
-        monkeypatch.delenv(name, raising=False)
+        os.environ.pop(name, None)
     monkeypatch.setattr(kernels, "_pinned", None)
+    yield
+    os.environ.clear()
+    os.environ.update(saved)
 
 
 def python_without_switches(code: str, **extra: str) -> subprocess.CompletedProcess:
@@ -93,9 +99,8 @@ def test_libraries_loaded_at_another_level_are_refused():
 
 
 @needs_avx2
-def test_an_environment_that_sets_a_switch_otherwise_is_refused_or_under_auto_followed(clean_environment,
-                                                                                       monkeypatch, caplog):
-    monkeypatch.setenv("OPENBLAS_CORETYPE", "SkylakeX")
+def test_an_environment_that_sets_a_switch_otherwise_is_refused_or_under_auto_followed(clean_environment, caplog):
+    os.environ["OPENBLAS_CORETYPE"] = "SkylakeX"           # restored by clean_environment
     with pytest.raises(PipeError, match="kernels=avx2 sets the AVX2 level, but the environment sets "
                                         "OPENBLAS_CORETYPE=SkylakeX: unset them, or use kernels=native"):
         kernels.use_kernels("avx2")
@@ -133,10 +138,10 @@ def test_native_after_the_avx2_level_was_set_is_refused(clean_environment, monke
 @needs_avx2
 @pytest.mark.parametrize(("params", "set_here"), [("kernels: native\n", False), ("kernels: auto\nseed: 3\n", True),
                                                   ("seed: 3\n", True), (None, True)])   # None: no such file
-def test_a_parameter_file_chooses_the_level_as_dvc_runs_train_py(clean_environment, monkeypatch, tmp_path, params,
+def test_a_parameter_file_chooses_the_level_as_dvc_runs_train_py(clean_environment, tmp_path, params,
                                                                   set_here):
     """DVC's stages give `params=params.yaml domain=<name>` and nothing else: the file's kernels= counts."""
-    monkeypatch.setenv("PROJECT_ROOT", str(tmp_path))
+    os.environ["PROJECT_ROOT"] = str(tmp_path)             # restored by clean_environment
     if params is not None:
         (tmp_path / "params.yaml").write_text(params)
     kernels.set_from_arguments(["params=params.yaml", "domain=pins", "phase=train"])

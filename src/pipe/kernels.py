@@ -21,12 +21,12 @@ from __future__ import annotations
 import logging
 import os
 import platform
-import sys
 from pathlib import Path
 
 import yaml
 
 from pipe.errors import PipeError
+from pipe.machine import loaded_kernels
 
 CHOICES = ("auto", "avx2", "native")
 
@@ -43,6 +43,7 @@ AVX2_ENVIRONMENT = {
                                          # branches, AUTO too, moved training here against the AVX2 host's figures)
     "ONEDNN_MAX_CPU_ISA": "AVX2",        # the same for torch's oneDNN (mkldnn)
 }
+_AVX2_LEVELS = {"torch": "AVX2", "numba": "haswell", "openblas": "Haswell"}   # as pipe.machine reads them
 _NEEDED_FLAGS = ("avx2", "fma")
 log = logging.getLogger(__name__)
 _pinned: str | None = None    # "avx2" once this module set the switches in this process
@@ -82,25 +83,10 @@ def resolve(choice: str) -> str:
 def loaded_mismatches() -> list[str]:
     """What the already loaded libraries run on where it is not the AVX2 level, e.g. 'torch AVX512'."""
     found = []
-    if "torch" in sys.modules:
-        level = sys.modules["torch"].backends.cpu.get_cpu_capability()
-        if level != "AVX2":
-            found.append(f"torch {level}")
-    if "numba" in sys.modules:
-        from llvmlite import binding
-
-        cpu = sys.modules["numba"].config.CPU_NAME or binding.get_host_cpu_name()
-        if cpu != AVX2_ENVIRONMENT["NUMBA_CPU_NAME"]:
-            found.append(f"numba {cpu}")
-    if "numpy" in sys.modules:
-        simd = sys.modules["numpy"].show_config(mode="dicts").get("SIMD Extensions", {})
-        above = [target for target in simd.get("found") or [] if "512" in target or target == "X86_V4"]
+    for library, level in loaded_kernels().items():
+        above = ("512" in level or level == "X86_V4") if library == "numpy" else level != _AVX2_LEVELS[library]
         if above:
-            found.append(f"numpy {above[-1]}")
-        from threadpoolctl import threadpool_info
-
-        cores = {lib.get("architecture") for lib in threadpool_info() if lib["internal_api"] == "openblas"}
-        found += [f"openblas {core}" for core in sorted(cores - {AVX2_ENVIRONMENT["OPENBLAS_CORETYPE"], None})]
+            found.append(f"{library} {level}")
     return found
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import platform
+import sys
 from importlib import metadata
 from pathlib import Path
 
@@ -23,6 +24,28 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine() or "unknown"
 
 
+def loaded_kernels() -> dict[str, str]:
+    """The instruction sets of the numeric libraries this process has loaded, by library (`torch`, `numba`,
+    `openblas`, `numpy`); a library not loaded is left out, and none is loaded here."""
+    found = {}
+    if "torch" in sys.modules:
+        found["torch"] = sys.modules["torch"].backends.cpu.get_cpu_capability()
+    if "numba" in sys.modules:
+        from llvmlite import binding
+
+        found["numba"] = sys.modules["numba"].config.CPU_NAME or binding.get_host_cpu_name()
+    if "numpy" in sys.modules:
+        from threadpoolctl import threadpool_info
+
+        openblas = sorted({lib["architecture"] for lib in threadpool_info()
+                           if lib["internal_api"] == "openblas" and lib.get("architecture")})
+        if openblas:
+            found["openblas"] = "/".join(openblas)
+        simd = sys.modules["numpy"].show_config(mode="dicts").get("SIMD Extensions", {})   # in rising order
+        found["numpy"] = (simd.get("found") or simd.get("baseline") or ["unknown"])[-1]
+    return found
+
+
 def cpu_kernels() -> str:
     """The instruction sets the numeric kernels run on here: torch's dispatch level (AVX2, AVX512, ...;
     ATEN_CPU_CAPABILITY lowers it), the CPU numba compiles its loops for (NUMBA_CPU_NAME, else the host's), the
@@ -32,20 +55,12 @@ def cpu_kernels() -> str:
     code (2026-12-06), and torch's, numba's and OpenBLAS's each move an identification on one host, numpy's did
     not (docs/experiments.md, "The oracle under other kernels on one host", "OpenBLAS's kernels, MKL's, and 96
     starts" and "numpy's own SIMD dispatch")."""
-    import numba
-    import numpy
+    import numba  # noqa: F401
+    import numpy  # noqa: F401
     import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS beside numpy's, for threadpoolctl to find)
-    import torch
-    from llvmlite import binding
-    from threadpoolctl import threadpool_info
+    import torch  # noqa: F401
 
-    compiled_for = numba.config.CPU_NAME or binding.get_host_cpu_name()
-    openblas = sorted({lib["architecture"] for lib in threadpool_info()
-                       if lib["internal_api"] == "openblas" and lib.get("architecture")})
-    blas = f", openblas {'/'.join(openblas)}" if openblas else ""
-    simd = numpy.show_config(mode="dicts").get("SIMD Extensions", {})     # targets in rising order
-    dispatched = (simd.get("found") or simd.get("baseline") or ["unknown"])[-1]
-    return f"torch {torch.backends.cpu.get_cpu_capability()}, numba {compiled_for}{blas}, numpy {dispatched}"
+    return ", ".join(f"{library} {level}" for library, level in loaded_kernels().items())
 
 
 def libc() -> str:
