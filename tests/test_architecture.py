@@ -17,8 +17,8 @@ from conftest import ROOT
 PACKAGE = ROOT / "src" / "pipe"
 LAYERS = {                      # top-level module or subpackage of pipe -> layer
     "__init__": 0, "errors": 0, "files": 0, "machine": 0,
-    "data": 1, "kernels": 1, "registry": 1, "settings": 1, "store": 1, "threads": 1,
-    "model": 2, "synthetic": 2, "importing": 2,
+    "data": 1, "kernels": 1, "registry": 1, "store": 1, "threads": 1,
+    "model": 2, "synthetic": 2, "importing": 2, "settings": 2,
     "training": 3, "evaluation": 3, "tracking": 3, "dataset_check": 3,
     "pipeline": 4, "predict": 4, "params": 4, "sweeps": 4,
     "cli": 5, "app": 6,

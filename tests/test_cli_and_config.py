@@ -176,6 +176,11 @@ def test_train_refuses_wrong_values_before_any_work(tmp_path):
     ("evaluation.identification.loss=rms", "evaluation.identification.loss takes one of mse, nmse, not 'rms'"),
     ("seeds=[0]", "seeds= needs at least two different seeds for a spread"),
     ("stages.vae.force_bins=0", "stages.vae.force_bins must be a whole number, 1 or more, not 0"),
+    ("+evaluation.identification.restart=3", "unknown evaluation.identification option(s) ['restart']; known: "
+                                             "['restarts', 'check_every',"),
+    ("+evaluation.band.levle=0.8", "unknown evaluation.band option(s) ['levle']; known: ['level', 'samples', 'seed']"),
+    ("evaluation.baselines=[nearst]", "evaluation.baselines takes a list of method names from pipe, oracle, "
+                                      "oracle_clean, nearest, gpr, blackbox, mean, not ['nearst']"),
 ])
 def test_train_refuses_a_wrong_setting_before_torch_lightning_and_mlflow_load(tmp_path, setting, message):
     """A typo costs a second, not the 10 to 15 s of those imports (nor a run in the MLflow store)."""

@@ -5,8 +5,10 @@ test_predict)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import re
+from importlib.metadata import EntryPoint
 
 import pytest
 from conftest import compose_config
@@ -19,10 +21,13 @@ from pipe.settings import (
     FEATURE_DTYPES,
     KERNELS,
     LOSS_NAMES,
+    METHOD_NAMES,
     POSITIVE,
     PREDICT_SETTINGS,
+    TRAIN_SECTIONS,
     TRAIN_SETTINGS,
     WHOLE_FROM_1,
+    MethodNames,
     OneOf,
     Takes,
     argument_type,
@@ -64,19 +69,59 @@ def test_the_names_checked_first_are_those_the_reading_modules_know():
     """pipe.settings holds copies, so that train.py checks them before torch loads; a name added to a module
     and not to its copy would be refused by train.py, one removed would fail deep in a run."""
     from pipe import kernels
-    from pipe.evaluation import identification
+    from pipe.evaluation import identification, methods
+    from pipe.evaluation.methods import METHODS
     from pipe.model.losses import FORCE_LOSSES
+    from pipe.model.uncertainty import BandSettings
     from pipe.training import stages
 
     assert LOSS_NAMES == tuple(FORCE_LOSSES)
     assert FEATURE_DTYPES == tuple(stages.FEATURE_DTYPES)
     assert ENGINES == identification.ENGINES
     assert KERNELS == kernels.CHOICES
+    assert TRAIN_SECTIONS == {"evaluation.identification": field_names(identification.IdentificationSettings),
+                              "evaluation.band": field_names(BandSettings)}
+    assert METHOD_NAMES == tuple(name for name in METHODS if METHODS[name].__module__ == methods.__name__)
     assert {key: str(takes) for key, takes in TRAIN_SETTINGS.items() if isinstance(takes, OneOf)} == {
         "phase": "one of all, train, evaluate", "kernels": "one of auto, avx2, native",
         "stages.vae.feature_dtype": "one of float32, bfloat16", "stages.head.loss": "one of mse, nmse",
         "evaluation.identification.engine": "one of torch, compiled",
         "evaluation.identification.loss": "one of mse, nmse"}
+
+
+def field_names(settings: type) -> tuple[str, ...]:
+    return tuple(field.name for field in dataclasses.fields(settings))
+
+
+def test_an_unknown_option_of_a_section_is_named_with_those_it_knows():
+    cfg = compose_config(["+evaluation.identification.restart=3", "+evaluation.band.levle=0.8", "seed=-1"])
+    with pytest.raises(PipeError) as caught:
+        check_settings(cfg, TRAIN_SETTINGS, "", TRAIN_SECTIONS)
+    assert str(caught.value) == (
+        "seed takes a whole number, from 0 to 4294967295, not -1; "
+        "unknown evaluation.identification option(s) ['restart']; known: ['restarts', 'check_every', 'tolerance', "
+        "'max_evaluations', 'history', 'ridge', 'cache', 'workers', 'engine', 'loss', 'via_mse', 'neutral_jitter']; "
+        "unknown evaluation.band option(s) ['levle']; known: ['level', 'samples', 'seed']")
+    check_settings(compose_config(["evaluation.band.level=0.8"]), TRAIN_SETTINGS, "", TRAIN_SECTIONS)
+    check_settings(OmegaConf.create({"evaluation": {"band": None}}), TRAIN_SETTINGS, "", TRAIN_SECTIONS)
+
+
+def test_the_baselines_names_are_checked_unless_a_plugin_package_may_register_more(monkeypatch):
+    import pipe.settings
+
+    takes = MethodNames(("pipe", "nearest", "gpr"))
+    assert takes.accepts(["nearest", "gpr"]) and takes.accepts([]) and takes.accepts(OmegaConf.create(["gpr"]))
+    assert not any(takes.accepts(value) for value in (["nearst"], "nearest", ["gpr", 3], None, {"gpr": 1}))
+    assert str(takes) == "a list of method names from pipe, nearest, gpr"
+    cfg = compose_config(["evaluation.baselines=[oracle,kriging]"])
+    with pytest.raises(PipeError, match=r"^evaluation.baselines takes a list of method names from pipe, oracle, "
+                                        r"oracle_clean, nearest, gpr, blackbox, mean, not \['oracle', 'kriging'\]$"):
+        check_settings(cfg, TRAIN_SETTINGS, "")
+    # with a plugin package installed, `kriging` may be one of its methods: the evaluation's check names it later
+    plugin = EntryPoint("my_plugin", "my_pipe_plugin", "pipe.plugins")
+    monkeypatch.setattr(pipe.settings, "plugin_entry_points", lambda: [plugin])
+    check_settings(cfg, TRAIN_SETTINGS, "")
+    assert not takes.accepts(["gpr", 3])
 
 
 def test_a_number_option_reads_its_text_as_the_setting_takes_it():
@@ -91,12 +136,12 @@ def test_a_number_option_reads_its_text_as_the_setting_takes_it():
                                        ["data=family"], ["data=recorded", "data.dir=x"], ["data.generate=null"],
                                        ["threads=1"]])
 def test_every_shipped_training_config_passes(overrides):
-    check_settings(compose_config(overrides), TRAIN_SETTINGS, "")
+    check_settings(compose_config(overrides), TRAIN_SETTINGS, "", TRAIN_SECTIONS)
 
 
 def test_the_pipeline_and_predict_configs_pass():
     with initialize_config_module(config_module="pipe.conf", version_base="1.3"):
-        check_settings(compose(config_name="pipeline"), TRAIN_SETTINGS, "")
+        check_settings(compose(config_name="pipeline"), TRAIN_SETTINGS, "", TRAIN_SECTIONS)
         check_settings(compose(config_name="predict", overrides=["mesh=a.stl", "run=abc"]), PREDICT_SETTINGS, "")
 
 

@@ -349,7 +349,7 @@ def test_evaluating_an_evaluation_follows_it_back_to_the_trained_folder(tiny_dat
 
 @pytest.mark.parametrize("overrides, message", [
     (["phase=evaluate"], "name its folder with resume="),
-    (["phase=fit"], "unknown phase=fit; choose one of all, train, evaluate"),
+    (["phase=fit"], "phase takes one of all, train, evaluate, not 'fit'"),
 ])
 def test_a_phase_without_what_it_needs_is_refused(tiny_data, tmp_path, overrides, message):
     from pipe.errors import PipeError
@@ -359,15 +359,20 @@ def test_a_phase_without_what_it_needs_is_refused(tiny_data, tmp_path, overrides
 
 
 @pytest.mark.parametrize("setting, message", [
-    ("evaluation.identification.engine=compild", r"unknown evaluation.identification.engine 'compild'"),
+    ("evaluation.identification.engine=compild", r"evaluation.identification.engine takes one of torch, compiled, "
+                                                 r"not 'compild'"),
     ("+evaluation.identification.restrats=3", r"unknown evaluation.identification option\(s\) \['restrats'\]"),
-    ("evaluation.baselines=[oracle,nearst]", r"unknown method\(s\) \['nearst'\] in evaluation.baselines"),
-    ("evaluation.band.samples=1", r"evaluation.band.samples needs at least 2 latent draws"),
-    ("stages.head.loss=mae", r"unknown stages.head.loss 'mae'; choose one of mse, nmse"),
+    ("+evaluation.band.levle=0.8", r"unknown evaluation.band option\(s\) \['levle'\]; known: \['level', "),
+    ("evaluation.baselines=[oracle,nearst]", r"evaluation.baselines takes a list of method names from pipe, oracle, "
+                                             r".*, not \['oracle', 'nearst'\]"),
+    ("evaluation.band.samples=1", r"evaluation.band.samples takes a whole number, 2 or more, not 1"),
+    ("stages.head.loss=mae", r"stages.head.loss takes one of mse, nmse, not 'mae'"),
+    ("stages.vae.feature_dtype=float16", r"stages.vae.feature_dtype takes one of float32, bfloat16, not 'float16'"),
 ])
 def test_a_run_refuses_a_wrong_evaluation_setting_before_it_trains(tiny_data, tmp_path, setting, message):
-    """Composed by its caller (not train.py, which checks the names first): refused before the run's folder, its
-    data or its MLflow run exist, not after both stages (an unknown identification engine ended a trained run)."""
+    """Composed by its caller (not train.py, which checks them before its imports): refused with train.py's
+    message before the run's folder, its data or its MLflow run exist, not after both stages (an unknown
+    identification engine ended a trained run) nor when stage 1 starts (a wrong feature dtype did)."""
     from pipe.errors import PipeError
 
     with pytest.raises(PipeError, match=message):

@@ -55,7 +55,7 @@ from pipe.model.sections import SECTION_SIZE, SectionCode
 from pipe.model.slices import SliceCode
 from pipe.model.uncertainty import BandSettings
 from pipe.model.vae import PointCloudVAE
-from pipe.settings import PHASES
+from pipe.settings import PHASES, TRAIN_EXAMPLE, TRAIN_SECTIONS, TRAIN_SETTINGS, check_settings
 from pipe.synthetic import generate_dataset
 from pipe.tracking import (
     StageLogger,
@@ -356,6 +356,7 @@ def check_same_settings(cfg: DictConfig, folder: Path) -> None:
 def run_domain(cfg: DictConfig) -> RunResult | TrainedRun | PublishedRun:
     """Train and evaluate one domain as configured (or one `phase` of it); tracked as one MLflow run unless
     `mlflow.enabled` is off. A domain without test parts is trained and published, not evaluated."""
+    check_settings(cfg, TRAIN_SETTINGS, TRAIN_EXAMPLE, TRAIN_SECTIONS)   # train.py checked them; other callers not
     phase = check_phase(cfg)
     loss = head_loss(cfg)               # an unknown stage-2 loss fails now, not after stage 1
     weights, _ = force_setting(cfg)     # so does a wrong stage-1 force term

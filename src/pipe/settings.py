@@ -8,9 +8,11 @@ a setting the config lacks (a plugin's own config) is not checked. Names from a 
 losses, stage 1's feature dtype, the identification's engine) are checked here too, against copies of the
 names that the modules reading them define (tests/test_settings.py keeps the two equal), so that train.py
 refuses a typo before torch and Lightning load; those modules check again for callers that compose a config
-themselves. Settings of other shapes are checked where they are read, and train.py calls those checks before
-its imports too where they are light (seeds=, stage 1's force term). The `pipe` command's number options take
-the same vocabulary (`argument_type`).
+themselves. So are the options of the identification and of the band (`TRAIN_SECTIONS`: only `+key=` adds one,
+and a misspelt `+evaluation.band.levle=0.8` would otherwise pass until the evaluation's imports) and the
+baselines' names (`MethodNames`). Settings of other shapes are checked where they are read, and train.py calls
+those checks before its imports too where they are light (seeds=, stage 1's force term). The `pipe` command's
+number options take the same vocabulary (`argument_type`).
 """
 
 from __future__ import annotations
@@ -21,9 +23,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipe.errors import PipeError
+from pipe.registry import plugin_entry_points
 
 _ABSENT = object()
 
@@ -83,6 +86,23 @@ class OneOf:
         return f"one of {', '.join(self.names)}"
 
 
+@dataclass(frozen=True)
+class MethodNames:
+    """What `evaluation.baselines` takes: a list of the evaluation's method names. An installed plugin package
+    may register more methods, known only once it loads (pipe.registry); with one installed a name outside
+    `names` is left to the evaluation's own check."""
+
+    names: tuple[str, ...]
+
+    def accepts(self, value: Any) -> bool:
+        if not isinstance(value, (list, tuple, ListConfig)) or not all(isinstance(name, str) for name in value):
+            return False
+        return all(name in self.names for name in value) or bool(plugin_entry_points())
+
+    def __str__(self) -> str:
+        return f"a list of method names from {', '.join(self.names)}"
+
+
 def _shown(bound: float) -> str:
     """A bound as written: 4294967295, not 4.29497e+09."""
     return str(int(bound)) if float(bound).is_integer() else f"{bound:g}"
@@ -100,8 +120,17 @@ LOSS_NAMES = ("mse", "nmse")               # pipe.model.losses.FORCE_LOSSES: sta
 FEATURE_DTYPES = ("float32", "bfloat16")   # pipe.training.stages.FEATURE_DTYPES
 ENGINES = ("torch", "compiled")            # pipe.evaluation.identification.ENGINES
 KERNELS = ("auto", "avx2", "native")       # pipe.kernels.CHOICES: train.py's and predict.py's kernels=
+METHOD_NAMES = ("pipe", "oracle", "oracle_clean", "nearest", "gpr", "blackbox", "mean")   # evaluation.methods.METHODS
 
-TRAIN_SETTINGS: Mapping[str, Takes | OneOf] = {
+# The options of the config sections read into a settings dataclass (pipe.errors.options_dataclass): its fields,
+# pipe.evaluation.identification.IdentificationSettings' and pipe.model.uncertainty.BandSettings'.
+TRAIN_SECTIONS: Mapping[str, tuple[str, ...]] = {
+    "evaluation.identification": ("restarts", "check_every", "tolerance", "max_evaluations", "history", "ridge",
+                                  "cache", "workers", "engine", "loss", "via_mse", "neutral_jitter"),
+    "evaluation.band": ("level", "samples", "seed"),
+}
+
+TRAIN_SETTINGS: Mapping[str, Takes | OneOf | MethodNames] = {
     "seed": SEED,
     "phase": OneOf(PHASES),
     "kernels": OneOf(KERNELS),
@@ -135,6 +164,7 @@ TRAIN_SETTINGS: Mapping[str, Takes | OneOf] = {
     "evaluation.identification.neutral_jitter": NOT_NEGATIVE,
     "evaluation.identification.engine": OneOf(ENGINES),
     "evaluation.identification.loss": OneOf(LOSS_NAMES),
+    "evaluation.baselines": MethodNames(METHOD_NAMES),
     "evaluation.blackbox_steps": WHOLE_FROM_1,
     "evaluation.blackbox_clip": FLAG,
     "evaluation.band.level": Takes("number", above=0, below=1),
@@ -142,6 +172,8 @@ TRAIN_SETTINGS: Mapping[str, Takes | OneOf] = {
     "evaluation.band.seed": SEED,
     "mlflow.enabled": FLAG,
 }
+
+TRAIN_EXAMPLE = "python train.py data=recorded data.dir=data/mylab domain.name=mylab ..."   # gives the ??? values
 
 PREDICT_SETTINGS: Mapping[str, Takes | OneOf] = {
     "kernels": OneOf(KERNELS),
@@ -152,9 +184,11 @@ PREDICT_SETTINGS: Mapping[str, Takes | OneOf] = {
 }
 
 
-def check_settings(cfg: DictConfig, settings: Mapping[str, Takes | OneOf], example: str) -> None:
+def check_settings(cfg: DictConfig, settings: Mapping[str, Takes | OneOf | MethodNames], example: str,
+                   sections: Mapping[str, tuple[str, ...]] | None = None) -> None:
     """Raise a PipeError naming every required value not given (`???` in the config; `example`, a command that
-    gives them, is shown where it names them all) and every setting of `settings` whose value it does not take."""
+    gives them, is shown where it names them all), every setting of `settings` whose value it does not take and
+    every option of a section of `sections` that it does not name."""
     if missing := sorted(OmegaConf.missing_keys(cfg)):
         given = [f"{key}=" for key in missing]
         how = f"e.g. {example}" if all(key in example for key in given) else "on the command line as key=value"
@@ -163,7 +197,12 @@ def check_settings(cfg: DictConfig, settings: Mapping[str, Takes | OneOf], examp
     for key, takes in settings.items():
         value = OmegaConf.select(cfg, key, default=_ABSENT)
         if value is not _ABSENT and not takes.accepts(value):
-            wrong.append(f"{key} takes {takes}, not {value!r}")
+            shown = OmegaConf.to_container(value) if isinstance(value, ListConfig) else value
+            wrong.append(f"{key} takes {takes}, not {shown!r}")
+    for section, known in (sections or {}).items():
+        options = OmegaConf.select(cfg, section, default=None)
+        if isinstance(options, DictConfig) and (unknown := sorted(set(options) - set(known))):
+            wrong.append(f"unknown {section} option(s) {unknown}; known: {list(known)}")
     if wrong:
         raise PipeError("; ".join(wrong))
 
