@@ -4,7 +4,9 @@ an environment that sets a switch otherwise, is refused rather than recorded und
 
 from __future__ import annotations
 
+import json
 import os
+import shlex
 import subprocess
 import sys
 
@@ -146,3 +148,43 @@ def test_a_parameter_file_chooses_the_level_as_dvc_runs_train_py(clean_environme
         (tmp_path / "params.yaml").write_text(params)
     kernels.set_from_arguments(["params=params.yaml", "domain=pins", "phase=train"])
     assert (os.environ.get("NUMBA_CPU_NAME") == "haswell") is set_here
+
+
+def shell_then_python(choice: str, code: str, **extra: str) -> subprocess.CompletedProcess:
+    """`eval "$(pipe kernels <choice>)"` in bash, then `code` in a fresh interpreter started by that shell; the
+    environment sets none of the switches but `extra`."""
+    pipe_kernels = f"{shlex.quote(sys.executable)} -m pipe.cli kernels {choice}"
+    script = f'eval "$({pipe_kernels})" && exec {shlex.quote(sys.executable)} -c {shlex.quote(code)}'
+    env = {k: v for k, v in os.environ.items() if k not in kernels.AVX2_ENVIRONMENT} | extra
+    return subprocess.run(["bash", "-c", script], capture_output=True, text=True, env=env, timeout=300)
+
+
+def test_pipe_kernels_prints_shell_lines_that_set_or_unset_every_switch():
+    switches = "import os, json; print(json.dumps({k: os.environ.get(k) for k in %r}))" % list(kernels.AVX2_ENVIRONMENT)
+    if kernels.has_avx2():
+        result = shell_then_python("avx2", switches, OPENBLAS_CORETYPE="SkylakeX")
+        assert result.returncode == 0, result.stderr
+        assert json.loads(result.stdout) == kernels.AVX2_ENVIRONMENT    # quoted as the shell reads them back
+    result = shell_then_python("native", switches, **kernels.AVX2_ENVIRONMENT)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout) == dict.fromkeys(kernels.AVX2_ENVIRONMENT)   # each library's own choice
+    assert kernels.shell_lines("native").endswith("# pipe kernels: native, each library's own choice")
+
+
+@needs_avx2
+def test_a_command_run_after_pipe_kernels_runs_every_library_at_the_avx2_level():
+    """What an experiment script or a batch job gets: the same kernels as train.py's kernels=auto."""
+    result = shell_then_python("auto", "import torch\nfrom pipe.machine import cpu_kernels\nprint(cpu_kernels())")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines()[-1] == AVX2_RECORD
+
+
+def test_pipe_kernels_refuses_avx2_on_a_cpu_without_it_and_auto_unsets_there(monkeypatch, capsys):
+    from pipe.cli import main
+
+    monkeypatch.setattr(kernels.platform, "machine", lambda: "aarch64")
+    assert main(["kernels", "avx2"]) == 2
+    assert "kernels=avx2 needs an x86-64 CPU with AVX2 and FMA; this one (aarch64) lacks them" in " ".join(
+        capsys.readouterr().err.split())
+    assert main(["kernels"]) == 0
+    assert capsys.readouterr().out.startswith(f"unset {' '.join(kernels.AVX2_ENVIRONMENT)}\n")

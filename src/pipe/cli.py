@@ -1,5 +1,5 @@
 """The `pipe` command line: `pipe data generate|import|check|pointcloud|preprocess`, `pipe params`, `pipe report
-curve|summary`."""
+curve|summary`, `pipe kernels`."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from pipe.errors import PipeError, debugging
+from pipe.settings import KERNELS as KERNEL_CHOICES
 from pipe.settings import POSITIVE, SEED, WHOLE_FROM_0, WHOLE_FROM_1, argument_type
 
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
@@ -172,6 +173,13 @@ def cmd_params(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_kernels(args: argparse.Namespace) -> int:
+    from pipe.kernels import shell_lines
+
+    print(shell_lines(args.choice))
+    return 0
+
+
 def add_import_parser(verbs: argparse._SubParsersAction) -> None:
     from pipe.importing.insertion import FRAMES, InsertionSettings
     from pipe.importing.readers import READERS, TIME_UNITS, ReaderOptions
@@ -304,6 +312,13 @@ def build_parser() -> argparse.ArgumentParser:
     summary.add_argument("--params", type=Path, help="summarise only the domains this params.yaml lists")
     summary.add_argument("--out", type=Path, required=True, help="folder for metrics.json, results.md and plots/")
     summary.set_defaults(run=cmd_summary)
+
+    kernels = kinds.add_parser("kernels", help="print shell lines that set the numeric libraries' kernels for the "
+                                               "commands run after them, as train.py's kernels= does: "
+                                               'eval "$(pipe kernels)" before an experiment script or a batch job')
+    kernels.add_argument("choice", nargs="?", default="auto", choices=KERNEL_CHOICES,
+                         help="auto (default: avx2 where the CPU has AVX2 and FMA), avx2, or native (unset them)")
+    kernels.set_defaults(run=cmd_kernels)
     return parser
 
 

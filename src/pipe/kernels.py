@@ -13,7 +13,9 @@ before the libraries load: train.py and predict.py read `kernels=` from their co
 the processes they start (a multirun's jobs, the identification's workers, DDP's) inherit them. The job then
 checks its config's choice against what its libraries run on (`use_kernels`) and refuses a mismatch rather
 than record figures under a level they were not computed at. A caller of the API sets the level itself,
-`use_kernels` before torch, numba and numpy load.
+`use_kernels` before torch, numba and numpy load; any other command (an experiment script, a benchmark, a batch
+job whose environment is not exported) runs at a level set by the shell before it, `eval "$(pipe kernels)"`
+(`shell_lines`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import logging
 import os
 import platform
+import shlex
 from pathlib import Path
 
 import yaml
@@ -149,3 +152,16 @@ def use_kernels(choice: str) -> str:
     os.environ.update(AVX2_ENVIRONMENT)
     _pinned = level
     return level
+
+
+def shell_lines(choice: str) -> str:
+    """POSIX shell lines that set (`avx2`) or unset (`native`) the switches for the commands a shell runs after
+    them: `eval "$(pipe kernels auto)"` before a script that loads the libraries itself. A comment line names the
+    level."""
+    level = resolve(choice)
+    if level == "native":
+        lines = [f"unset {' '.join(AVX2_ENVIRONMENT)}", "# pipe kernels: native, each library's own choice"]
+    else:
+        lines = [f"export {name}={shlex.quote(value)}" for name, value in AVX2_ENVIRONMENT.items()]
+        lines.append("# pipe kernels: avx2, torch, numba, numpy, OpenBLAS, MKL and oneDNN at the AVX2 level")
+    return "\n".join(lines)
