@@ -144,7 +144,7 @@ def job_config(cfg: DictConfig) -> None:
     from pipe.evaluation.spread import check_seeds
     from pipe.kernels import use_kernels
     from pipe.params import apply_params
-    from pipe.settings import TRAIN_EXAMPLE, TRAIN_SECTIONS, TRAIN_SETTINGS, check_settings
+    from pipe.settings import TRAIN_COMMAND_SETTINGS, TRAIN_EXAMPLE, TRAIN_SECTIONS, check_settings
     from pipe.threads import available_cores, job_threads, set_threads
     from pipe.training.force_choice import force_setting
 
@@ -154,7 +154,7 @@ def job_config(cfg: DictConfig) -> None:
     if cfg.params is not None:
         groups = {name.split("/")[0] for name in hydra_cfg.runtime.choices if not name.startswith("hydra")}
         apply_params(cfg, Path(cfg.paths.root) / cfg.params, groups, list(hydra_cfg.overrides.task))
-    check_settings(cfg, TRAIN_SETTINGS, TRAIN_EXAMPLE, TRAIN_SECTIONS)
+    check_settings(cfg, TRAIN_COMMAND_SETTINGS, TRAIN_EXAMPLE, TRAIN_SECTIONS)
     use_kernels(cfg.kernels)
     from pipe.data.domain import domain_from_config  # numpy's first import in a single run
     from pipe.dataset_check import check_dataset
